@@ -1,0 +1,39 @@
+# SurfPhase: `make demo` runs the pipeline on the embedded synthetic demo campaign,
+# `make test` runs the test suite. Each creates .venv and installs what it needs.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+CORES ?= 2
+
+.PHONY: install test test-all lint demo demo-data clean-demo
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --upgrade pip
+	# Pin torch first: the CPU wheel on disk; any other request pulls CUDA packages.
+	$(BIN)/python -m pip install torch==2.13.0
+	$(BIN)/python -m pip install -e '.[test]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+lint: $(STAMP)
+	$(BIN)/ruff check surfphase tests
+	$(BIN)/snakemake --lint --cores 1
+
+test: $(STAMP) lint
+	$(BIN)/python -m pytest -q
+
+test-all: $(STAMP)
+	$(BIN)/python -m pytest -q --runslow
+
+demo-data: $(STAMP)
+	$(BIN)/surfphase synth --preset demo --out demo
+
+demo: demo-data
+	$(BIN)/snakemake --cores $(CORES) --keep-going
+	@echo "Results are under results/ (see README.md)."
+
+clean-demo:
+	rm -rf demo results logs benchmarks .snakemake

@@ -1,0 +1,5 @@
+import sys
+
+from surfphase.cli import main
+
+sys.exit(main())

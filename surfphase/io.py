@@ -1,0 +1,70 @@
+"""Small file helpers shared by every stage: whole-or-nothing writes and frame stacks.
+
+A stage writes each output to a temporary name in the same folder, then renames it
+(``os.replace`` is atomic on POSIX), so a killed job never leaves a half-written file
+under the final name.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; rename it onto ``path`` on success.
+
+    The temporary keeps ``path``'s suffix (or ``suffix``) so libraries that choose a
+    format from the extension still work. On error the temporary is removed.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sfx = path.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".part{sfx}", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to ``path`` whole or not at all."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def atomic_write_json(path: str | os.PathLike, obj, indent: int = 1) -> None:
+    """Write ``obj`` as JSON to ``path`` whole or not at all."""
+    atomic_write_text(path, json.dumps(obj, indent=indent, default=_json_default))
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o)}")
+
+
+def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
+    """Save an array as ``.npy`` whole or not at all (readable with ``mmap_mode='r'``)."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, np.ascontiguousarray(array))
+
+
+def load_stack(path: str | os.PathLike) -> np.ndarray:
+    """Memory-map a frame stack ``.npy`` (frames × H × W[, C]) without reading it all."""
+    return np.load(path, mmap_mode="r")
