@@ -182,7 +182,8 @@ def look_at(
     z = np.asarray(target, dtype=np.float64) - eye
     z /= np.linalg.norm(z)
     up = np.asarray(up, dtype=np.float64)
-    x = np.cross(z, -up)  # camera +y is image-down = -up
+    # Right-handed camera frame with +y (image down) along -up: x = y × z.
+    x = np.cross(-up, z)
     if np.linalg.norm(x) < 1e-9:
         raise ValueError("look_at: view direction is parallel to up")
     x /= np.linalg.norm(x)

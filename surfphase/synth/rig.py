@@ -1,0 +1,70 @@
+"""The reference rig of the synthetic campaign: true cameras in the lab frame.
+
+Lab frame (DESIGN.md): +y up, heated plate at y = 0, x horizontal in cam0's image
+(cam0 sits on the +z axis looking towards −z, so image-right is lab +x).
+
+Cameras (native resolution ``native``, e.g. 512×512):
+
+* ``cam0``, ``cam1``: the two input cameras, ``baseline_deg`` (35°) apart in azimuth
+  about the vertical axis through the scene centre, slightly above it, looking down at it;
+* ``mid``: a held-out camera half-way between them;
+* ``orbit01``…``orbit11``: the method's orbit views, 30° steps from cam0 towards cam1.
+
+Only cam0 and cam1 carry lens distortion (they are the ones a lab calibrates).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from surfphase.cameras import Camera, look_at, orbit_cameras
+
+#: Scene centre in metres (lab frame): above the plate, where bubbles rise.
+SCENE_CENTER = np.array([0.0, 0.006, 0.0])
+
+
+def default_rig(
+    native: int = 512,
+    distance: float = 0.06,
+    height: float = 0.008,
+    fx: float = 1800.0,
+    baseline_deg: float = 35.0,
+    orbit_views: int = 11,
+    orbit_step_deg: float = 30.0,
+    dist0: tuple[float, ...] = (-0.35, 0.4, 0.0005, -0.0003, 0.0),
+    dist1: tuple[float, ...] = (-0.30, 0.3, -0.0004, 0.0002, 0.0),
+) -> dict[str, Camera]:
+    """True cameras of the synthetic rig, ``{name: Camera}``, metres and pixels.
+
+    ``fx`` is given for ``native`` = 512 and scaled with it; principal points are
+    offset a few pixels from the image centre, as real sensors are.
+    """
+    s = native / 512.0
+    eye0 = SCENE_CENTER + np.array([0.0, height - SCENE_CENTER[1], distance])
+    base = look_at(
+        "cam0",
+        eye0,
+        SCENE_CENTER,
+        fx=fx * s,
+        fy=fx * s * 1.002,
+        width=native,
+        height=native,
+        cx=(native - 1) / 2 + 3.2 * s,
+        cy=(native - 1) / 2 - 2.1 * s,
+        role="input",
+    )
+    cam0 = replace(base, dist=np.asarray(dist0, dtype=np.float64))
+    (c1,) = orbit_cameras(base, SCENE_CENTER, n_views=1, step_deg=baseline_deg)
+    K1 = base.K.copy()
+    K1[0, 0] *= 1.004
+    K1[1, 1] *= 1.004
+    K1[0, 2] -= 2.4 * s
+    K1[1, 2] += 1.7 * s
+    cam1 = replace(c1, name="cam1", K=K1, dist=np.asarray(dist1, dtype=np.float64), role="input")
+    (mid,) = orbit_cameras(base, SCENE_CENTER, n_views=1, step_deg=baseline_deg / 2)
+    mid = replace(mid, name="mid", role="heldout")
+    orbit = orbit_cameras(base, SCENE_CENTER, n_views=orbit_views, step_deg=orbit_step_deg)
+    cams = [cam0, cam1, mid, *orbit]
+    return {c.name: c for c in cams}
