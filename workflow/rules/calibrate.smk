@@ -1,0 +1,25 @@
+rule calibrate:
+    """ChArUco calibration of one rig: intrinsics, distortion, extrinsics in the lab frame."""
+    input:
+        board=lambda wc: existing([resolve(rigs, rigs.loc[wc.rig, "board"])]),
+        images=lambda wc: existing(rig_cameras(wc.rig).values()),
+    output:
+        cameras=f"{RESULTS}/calib/{{rig}}/cameras.json",
+        report=f"{RESULTS}/calib/{{rig}}/report.json",
+        corners=f"{RESULTS}/calib/{{rig}}/corners.png",
+    params:
+        surfphase=SURFPHASE,
+        board=lambda wc: resolve(rigs, rigs.loc[wc.rig, "board"]),
+        cams=lambda wc: cam_args(rig_cameras(wc.rig)),
+        min_images=config["calibrate"]["min_images"],
+        code=code_version("calib", "commands/calibrate"),
+    log:
+        "logs/calibrate/{rig}.log",
+    benchmark:
+        "benchmarks/calibrate/{rig}.tsv"
+    conda:
+        "../../envs/surfphase.yaml"
+    shell:
+        "{params.surfphase} calibrate --rig {wildcards.rig} --board {params.board:q}"
+        " {params.cams} --min-images {params.min_images}"
+        " --out $(dirname {output.cameras:q}) > {log:q} 2>&1"
