@@ -10,6 +10,7 @@ file, and ``--keep-going`` lets the other sessions finish. Problems with a whole
 """
 
 import hashlib
+import json
 import os
 import shlex
 import sys

@@ -1,0 +1,172 @@
+"""The workflow end to end on a tiny synthetic campaign: results, bad input, resuming."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from surfphase.synth.campaign import write_campaign
+
+ROOT = Path(__file__).resolve().parents[1]
+TARGET_STAGE = "ingest"  # the last per-session stage these tests drive the DAG to
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    """A tiny synthetic campaign with two sessions on one rig (generated once)."""
+    out = tmp_path_factory.mktemp("tiny") / "campaign"
+    write_campaign(out, preset="tiny", seed=3, sessions=2)
+    return out
+
+
+def make_workdir(tmp_path: Path, campaign: Path) -> Path:
+    """A Snakemake working directory whose config points at ``campaign``'s sheets."""
+    work = tmp_path / "work"
+    (work / "config").mkdir(parents=True)
+    shutil.copy(campaign / "sessions.tsv", work / "config" / "sessions.tsv")
+    shutil.copy(campaign / "rigs.tsv", work / "config" / "rigs.tsv")
+    for sheet in ("sessions.tsv", "rigs.tsv"):
+        text = (work / "config" / sheet).read_text()
+        lines = text.splitlines()
+        # Re-root the sheet's relative paths at the campaign folder.
+        head, rows = lines[0], lines[1:]
+        cols = head.split("\t")
+        path_cols = [i for i, c in enumerate(cols) if c.startswith("cam") or c in ("gt", "board")]
+        fixed = []
+        for row in rows:
+            cells = row.split("\t")
+            for i in path_cols:
+                if i < len(cells) and cells[i] and not os.path.isabs(cells[i]):
+                    cells[i] = str((campaign / cells[i]).resolve())
+            fixed.append("\t".join(cells))
+        (work / "config" / sheet).write_text("\n".join([head, *fixed]) + "\n")
+    (work / "config" / "config.yaml").write_text(
+        "sessions: config/sessions.tsv\nrigs: config/rigs.tsv\nresults: results\n"
+        "device: cpu\nthreads: 1\ncalibrate:\n  min_images: 6\n"
+    )
+    return work
+
+
+def snakemake(work: Path, *args: str, **kw) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work)]
+    return subprocess.run(
+        [*cmd, "--cores", "2", *args], capture_output=True, text=True, timeout=900, **kw
+    )
+
+
+def edit_sheet(path: Path, session: str, column: str, value: str) -> None:
+    lines = path.read_text().splitlines()
+    cols = lines[0].split("\t")
+    i = cols.index(column)
+    out = [lines[0]]
+    for row in lines[1:]:
+        cells = row.split("\t")
+        if cells[0] == session:
+            cells[i] = value
+        out.append("\t".join(cells))
+    path.write_text("\n".join(out) + "\n")
+
+
+def test_run_produces_calibration_and_frame_stacks(tiny: Path, tmp_path: Path):
+    work = make_workdir(tmp_path, tiny)
+    r = snakemake(work)
+    assert r.returncode == 0, r.stdout + r.stderr
+    cams = json.loads((work / "results/calib/rig01/cameras.json").read_text())["cameras"]
+    assert set(cams) >= {"cam0", "cam1"}
+    for s in ("session01", "session02"):
+        meta = json.loads((work / f"results/{s}/ingest/meta.json").read_text())
+        stack = np.load(work / f"results/{s}/ingest/cam0.npy", mmap_mode="r")
+        assert stack.shape[0] == len(meta["frames"])
+        assert (work / f"logs/ingest/{s}.log").exists()
+        assert (work / f"benchmarks/ingest/{s}.tsv").exists()
+
+
+@pytest.mark.parametrize("problem", ["missing_video", "unknown_rig", "frame_counts"])
+def test_bad_session_stops_that_session_only(tiny: Path, tmp_path: Path, problem: str):
+    work = make_workdir(tmp_path, tiny)
+    sheet = work / "config" / "sessions.tsv"
+    if problem == "missing_video":
+        bad = str(tmp_path / "nowhere" / "cam1")
+        edit_sheet(sheet, "session02", "cam1", bad)
+        expect = [bad]
+    elif problem == "unknown_rig":
+        edit_sheet(sheet, "session02", "rig", "rig99")
+        expect = ["rig99", "rigs.tsv"]
+    else:
+        # cam1 of session02 loses two frames: a copy of its folder without the last two.
+        src = Path(
+            next(r for r in sheet.read_text().splitlines() if r.startswith("session02")).split(
+                "\t"
+            )[sheet.read_text().splitlines()[0].split("\t").index("cam1")]
+        )
+        short = tmp_path / "short_cam1"
+        shutil.copytree(src, short)
+        for f in sorted(short.iterdir())[-2:]:
+            f.unlink()
+        edit_sheet(sheet, "session02", "cam1", str(short))
+        expect = [str(short)]
+    r = snakemake(work, "--keep-going")
+    assert r.returncode != 0
+    log = (work / "logs/ingest/session02.log").read_text()
+    assert "session02" in log
+    for e in expect:
+        assert e in log, log
+    # The other session finished.
+    assert (work / "results/session01/ingest/meta.json").exists()
+    assert not (work / "results/session02/ingest").exists()
+
+
+def test_too_few_calibration_images_names_rig_and_folder(tiny: Path, tmp_path: Path):
+    work = make_workdir(tmp_path, tiny)
+    rigs = work / "config" / "rigs.tsv"
+    lines = rigs.read_text().splitlines()
+    cols = lines[0].split("\t")
+    row = lines[1].split("\t")
+    few = tmp_path / "few_cam1"
+    few.mkdir()
+    for f in sorted(Path(row[cols.index("cam1")]).iterdir())[:3]:
+        shutil.copy(f, few / f.name)
+    row2 = list(row)
+    row2[0] = "rig02"
+    row2[cols.index("cam1")] = str(few)
+    rigs.write_text("\n".join([*lines, "\t".join(row2)]) + "\n")
+    edit_sheet(work / "config" / "sessions.tsv", "session02", "rig", "rig02")
+    r = snakemake(work, "--keep-going")
+    assert r.returncode != 0
+    log = (work / "logs/calibrate/rig02.log").read_text()
+    assert "rig02" in log and str(few) in log, log
+    assert (work / "results/session01/ingest/meta.json").exists()
+
+
+def test_killed_run_resumes_with_rerun_incomplete(tiny: Path, tmp_path: Path):
+    work = make_workdir(tmp_path, tiny)
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work)]
+    proc = subprocess.Popen(
+        [*cmd, "--cores", "1"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    # Kill the whole process group as soon as the first ingest job has started.
+    deadline = time.time() + 300
+    while time.time() < deadline and not (work / "logs/ingest").exists():
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    r = snakemake(work, "--rerun-incomplete")
+    assert r.returncode == 0, r.stdout + r.stderr
+    ref = make_workdir(tmp_path / "ref", tiny)
+    assert snakemake(ref).returncode == 0
+    for s in ("session01", "session02"):
+        a = np.load(work / f"results/{s}/ingest/cam0.npy")
+        b = np.load(ref / f"results/{s}/ingest/cam0.npy")
+        np.testing.assert_array_equal(a, b)
