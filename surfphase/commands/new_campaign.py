@@ -1,0 +1,318 @@
+"""``surfphase new-campaign``: a campaign folder from a folder of videos.
+
+Finds the videos under ``--videos``, groups them into sessions and cameras, reads the
+frame rate from Photron (CIH/CIHX) and Phantom (CINE) headers, and writes
+``CAMPAIGN/config/{config.yaml, sessions.tsv, rigs.tsv, board.yaml}``.
+
+Naming rule (the first that matches, per video):
+
+1. Photron's default names ``C001H001S0001.cihx``: camera ``C001H001``, session ``S0001``.
+2. Subfolders ``<session>/<camera>.<ext>`` or ``<session>/<camera>/`` (a folder of images).
+3. Files ``<session>_<camera>.<ext>`` (the camera is the text after the last ``_``).
+
+A video is a file with a known suffix (``.cih``/``.cihx`` + ``.mraw``, ``.cine``,
+``.avi``, ``.mp4``, ``.mov``, ``.mkv``, ``.tif``/``.tiff`` stacks) or a folder of
+images. The cameras, sorted by name, become ``cam0``, ``cam1``, ...; the sessions sheet
+records which is which in a comment. All sessions share one rig, ``rig01``, whose
+calibration images are ``--calib DIR/<camera>/`` (each camera's images, same file name
+= same moment); without ``--calib`` the rigs sheet points at ``CAMPAIGN/calib/<cam>/``,
+which is created empty for you to fill.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shlex
+from collections import defaultdict
+from pathlib import Path
+
+from surfphase.io import atomic_write_text
+from surfphase.labformats import open_lab_video
+
+VIDEO_SUFFIXES = {
+    ".cih",
+    ".cihx",
+    ".mraw",
+    ".cine",
+    ".avi",
+    ".mp4",
+    ".mov",
+    ".mkv",
+    ".tif",
+    ".tiff",
+}
+IMAGE_SUFFIXES = {".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp"}
+PHOTRON_NAME = re.compile(r"^(C\d+H\d+)(S\d+)$", re.IGNORECASE)
+ID = re.compile(r"[^A-Za-z0-9_.-]+")
+
+BOARD_YAML = """\
+# ChArUco board of the rig (defaults: the reference rig). Lengths in metres.
+squares_x: 5
+squares_y: 7
+square_length: 0.004   # side of a chessboard square
+marker_length: 0.003   # side of an ArUco marker
+dictionary: DICT_4X4_50
+"""
+
+SLURM_BLOCK = """
+# For `surfphase run --cluster slurm`: your cluster's account and partitions.
+# slurm:
+#   account: my_account
+#   partition: cpu
+#   gpu_partition: gpu
+"""
+
+
+def _is_image_folder(p: Path) -> bool:
+    return p.is_dir() and any(
+        c.is_file() and c.suffix.lower() in IMAGE_SUFFIXES for c in p.iterdir()
+    )
+
+
+def _clean(name: str) -> str:
+    """A session id the sheets accept (letters, digits, '_', '.', '-')."""
+    s = ID.sub("-", name).strip("-.")
+    return s or "session"
+
+
+def find_videos(root: Path) -> dict[str, dict[str, Path]]:
+    """``{session: {camera label: video path}}`` of the videos under ``root``."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: videos folder not found")
+    found: dict[str, dict[str, Path]] = defaultdict(dict)
+
+    def add(session: str, camera: str, path: Path) -> None:
+        session = _clean(session)
+        if camera in found[session]:
+            raise ValueError(
+                f"session {session}: two videos for camera '{camera}': "
+                f"{found[session][camera]} and {path}"
+            )
+        found[session][camera] = path
+
+    def videos_in(folder: Path) -> list[Path]:
+        out = []
+        for p in sorted(folder.iterdir()):
+            if p.name.startswith(".") or p.name.lower() == "calib":
+                continue
+            if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES:
+                # A Photron recording is its header; its .mraw is the data.
+                if p.suffix.lower() == ".mraw" and any(
+                    p.with_suffix(s).exists() for s in (".cih", ".cihx", ".CIH", ".CIHX")
+                ):
+                    continue
+                if p.suffix.lower() == ".cih" and p.with_suffix(".cihx").exists():
+                    continue
+                out.append(p)
+        return out
+
+    for p in videos_in(root):
+        m = PHOTRON_NAME.match(p.stem)
+        if m:
+            add(m.group(2), m.group(1), p)
+        elif "_" in p.stem:
+            session, camera = p.stem.rsplit("_", 1)
+            add(session, camera, p)
+        else:
+            raise ValueError(
+                f"{p}: cannot tell session and camera; name it <session>_<camera>{p.suffix} "
+                "or put it in a folder <session>/<camera>" + p.suffix
+            )
+    for sub in sorted(q for q in root.iterdir() if q.is_dir() and not q.name.startswith(".")):
+        if sub.name.lower() == "calib" or _is_image_folder(sub):
+            continue
+        for p in videos_in(sub):
+            m = PHOTRON_NAME.match(p.stem)
+            add(sub.name, m.group(1) if m else p.stem, p)
+        for cam in sorted(q for q in sub.iterdir() if _is_image_folder(q)):
+            add(sub.name, cam.name, cam)
+    if not found:
+        raise ValueError(
+            f"{root}: no videos found (suffixes {', '.join(sorted(VIDEO_SUFFIXES))}, "
+            "or folders of images)"
+        )
+    return dict(found)
+
+
+def header_fps(path: Path) -> float | None:
+    """Frame rate from a lab recording's header (CIH/CIHX/CINE), else ``None``."""
+    if path.is_file() and path.suffix.lower() in {".cih", ".cihx", ".cine", ".mraw"}:
+        return open_lab_video(path).fps
+    return None
+
+
+def _sheet_path(path: Path, sheet_dir: Path, camp: Path) -> str:
+    """Relative to the sheet's folder when inside the campaign, else absolute."""
+    path = path.resolve()
+    if path.is_relative_to(camp):
+        return os.path.relpath(path, sheet_dir)
+    return str(path)
+
+
+def _config_text(project_config: Path | None) -> str:
+    """The project's config/config.yaml with the sheet paths of a campaign."""
+    if project_config and project_config.is_file():
+        text = project_config.read_text()
+        lines = [ln for ln in text.splitlines() if not ln.startswith("#")]
+        text = "\n".join(lines).lstrip("\n") + "\n"
+        text = re.sub(r"(?m)^sessions:.*$", "sessions: config/sessions.tsv", text)
+        text = re.sub(r"(?m)^rigs:.*$", "rigs: config/rigs.tsv", text)
+    else:
+        text = "sessions: config/sessions.tsv\nrigs: config/rigs.tsv\nresults: results\n"
+    head = (
+        "# SurfPhase campaign, written by `surfphase new-campaign`. Paths are relative to the\n"
+        "# campaign folder; every key is documented in workflow/schemas/config.schema.yaml.\n"
+    )
+    return head + text + SLURM_BLOCK
+
+
+def new_campaign(
+    videos: Path,
+    out: Path,
+    fps: float | None = None,
+    calib: Path | None = None,
+    project_config: Path | None = None,
+    force: bool = False,
+) -> dict:
+    """Write a campaign's config and sheets for the videos under ``videos``.
+
+    Returns ``{"sessions": {...}, "cameras": {label: camN}, "fps": {session: fps}}``.
+    ``fps`` (frames per second) overrides the headers; it is required when a session
+    has no lab-format video. Raises ValueError/FileNotFoundError naming the file or session.
+    """
+    videos, out = Path(videos).resolve(), Path(out).resolve()
+    config_dir = out / "config"
+    if not force and any((config_dir / n).exists() for n in ("config.yaml", "sessions.tsv")):
+        raise ValueError(f"{config_dir}: already holds a campaign (use --force to overwrite)")
+    found = find_videos(videos)
+    labels = sorted({c for cams in found.values() for c in cams})
+    if len(labels) < 2:
+        raise ValueError(
+            f"{videos}: found only camera {labels} (sessions {', '.join(found)}); SurfPhase "
+            "needs two synchronized cameras per session"
+        )
+    cam_of = {label: f"cam{i}" for i, label in enumerate(labels)}
+    rates: dict[str, float] = {}
+    for session, cams in sorted(found.items()):
+        missing = [c for c in labels if c not in cams]
+        if missing:
+            raise ValueError(f"session {session}: no video for camera(s) {', '.join(missing)}")
+        heads = {c: header_fps(p) for c, p in cams.items()}
+        known = {c: r for c, r in heads.items() if r}
+        if fps:
+            rates[session] = float(fps)
+        elif known:
+            values = set(known.values())
+            if len(values) > 1:
+                raise ValueError(
+                    f"session {session}: cameras disagree on the frame rate "
+                    + ", ".join(f"{cams[c]}: {r:g} fps" for c, r in known.items())
+                )
+            rates[session] = values.pop()
+        else:
+            raise ValueError(
+                f"session {session}: no frame rate in the files ({', '.join(map(str, cams.values()))}); "
+                "give --fps"
+            )
+
+    # Calibration folders: --calib DIR/<camera label or camN>/, else CAMPAIGN/calib/<camN>/.
+    calib_dirs: dict[str, Path] = {}
+    calib = Path(calib).resolve() if calib else None
+    if calib is None and (videos / "calib").is_dir():
+        calib = videos / "calib"
+    for label, cam in cam_of.items():
+        if calib is not None:
+            cands = [calib / label, calib / cam]
+            hit = next((c for c in cands if c.is_dir()), None)
+            if hit is None:
+                raise FileNotFoundError(
+                    f"{calib}: no calibration folder for camera {label} ({cands[0].name}/ or {cam}/)"
+                )
+            calib_dirs[cam] = hit
+        else:
+            calib_dirs[cam] = out / "calib" / cam
+            calib_dirs[cam].mkdir(parents=True, exist_ok=True)
+
+    cams = [cam_of[label] for label in labels]
+    mapping = ", ".join(f"{cam_of[label]} = {label}" for label in labels)
+    rows = [
+        "# Written by `surfphase new-campaign` from " + str(videos),
+        f"# cameras: {mapping}",
+        "\t".join(["session", "rig", "fps", "frames", *cams]),
+    ]
+    for session in sorted(found):
+        paths = [_sheet_path(found[session][label], config_dir, out) for label in labels]
+        rows.append("\t".join([session, "rig01", f"{rates[session]:g}", "", *paths]))
+    rig_rows = [
+        f"# cameras: {mapping}; calibration images: same file name across cameras = same moment",
+        "\t".join(["rig", "board", *cams]),
+        "\t".join(
+            ["rig01", "board.yaml", *(_sheet_path(calib_dirs[c], config_dir, out) for c in cams)]
+        ),
+    ]
+    atomic_write_text(config_dir / "board.yaml", BOARD_YAML)
+    atomic_write_text(config_dir / "rigs.tsv", "\n".join(rig_rows) + "\n")
+    atomic_write_text(config_dir / "sessions.tsv", "\n".join(rows) + "\n")
+    atomic_write_text(config_dir / "config.yaml", _config_text(project_config))
+    return {
+        "sessions": {s: {cam_of[c]: str(p) for c, p in v.items()} for s, v in found.items()},
+        "cameras": cam_of,
+        "fps": rates,
+        "calib": {c: str(p) for c, p in calib_dirs.items()},
+    }
+
+
+def new_campaign_cmd(args: argparse.Namespace) -> int:
+    from surfphase.commands.run import project_root
+
+    out = Path(args.out)
+    info = new_campaign(
+        Path(args.videos),
+        out,
+        fps=args.fps,
+        calib=Path(args.calib) if args.calib else None,
+        project_config=project_root() / "config" / "config.yaml",
+        force=args.force,
+    )
+    print(f"Campaign written to {out / 'config'}:")
+    print(f"  {len(info['sessions'])} session(s): " + ", ".join(sorted(info["sessions"])))
+    print("  cameras: " + ", ".join(f"{v} = {k}" for k, v in info["cameras"].items()))
+    print("  fps: " + ", ".join(f"{s} {r:g}" for s, r in sorted(info["fps"].items())))
+    empty = [c for c, p in info["calib"].items() if not any(Path(p).iterdir())]
+    if empty:
+        print(
+            "  calibration: put each camera's ChArUco images in "
+            + ", ".join(info["calib"][c] for c in empty)
+        )
+    print(f"  check the board in {out / 'config' / 'board.yaml'}")
+    q = shlex.quote(str(out))
+    print("Next:")
+    print(f"  surfphase status --campaign {q}")
+    print(f"  surfphase run --campaign {q} --cores 8        # or --cluster slurm")
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "new-campaign",
+        help="write a campaign's config and sheets from a folder of videos",
+        description=(
+            "Find the videos under --videos (named <session>_<camera>.<ext>, "
+            "<session>/<camera>.<ext>, <session>/<camera>/ image folders, or Photron's "
+            "C001H001S0001), read fps from MRAW/CINE headers, and write "
+            "CAMPAIGN/config/{config.yaml,sessions.tsv,rigs.tsv,board.yaml}."
+        ),
+    )
+    p.add_argument("--videos", required=True, metavar="DIR", help="folder of the videos")
+    p.add_argument("--out", required=True, metavar="CAMPAIGN", help="campaign folder to write")
+    p.add_argument("--fps", type=float, help="frame rate (fps); overrides the headers")
+    p.add_argument(
+        "--calib",
+        metavar="DIR",
+        help="calibration images, one subfolder per camera (default: VIDEOS/calib)",
+    )
+    p.add_argument("--force", action="store_true", help="overwrite an existing config")
+    p.set_defaults(func=new_campaign_cmd)

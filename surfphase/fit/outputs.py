@@ -1,0 +1,262 @@
+"""Outputs of the stage-1 fit, written whole or not at all.
+
+``OUTDIR/surfels.npz`` — every surfel at every frame (F frames, N surfels: all surfels
+ever created; surfels appended later for new bubbles are padded before they exist):
+
+=============  ============  ========================================================
+key            shape/dtype   meaning
+=============  ============  ========================================================
+frame          (F,) int64    session frame index
+time_s         (F,) float64  time of the frame, seconds
+alive          (F, N) bool   the surfel exists at that frame
+means          (F, N, 3) f4  centre, metres, lab frame
+quats          (F, N, 4) f4  rotation (w, x, y, z), unit; normal = 3rd column
+log_scales     (F, N, 2) f4  ln of the tangent standard deviations (metres)
+colors         (F, N, D) f4  colour in [0, 1] (clamp when rendering)
+sdf            (F, N) f4     SDF value f, metres (NaN in the "no SDF" ablation)
+opacity        (F, N) f4     o = 4e^{−γf}/(1+e^{−γf})² (or the free opacity)
+bubble         (F, N) int32  bubble bound at that frame (−1 none, 0 nucleation)
+velocity       (F, N, 3) f4  per-surfel finite-difference velocity, m/s (0 if unknown)
+gamma          (F,) f4       SDF sharpness γ, 1/metres (NaN without SDF)
+background     (D,) f4       background colour for novel views (median of the images)
+bg_images      (C,H,W,D) f4  per-input-view background images the fit rendered over
+extent         () f8         scene extent L, metres
+=============  ============  ========================================================
+
+``OUTDIR/bubbles.csv`` — ``frame, time_s, bubble, x, y, z, vx, vy, vz, n_surfels``:
+weighted centroids (metres) and central finite-difference velocities (m/s; one-sided at
+the first and last frame) in the lab frame, both from the same surfels (those bound to
+the bubble at that frame).
+
+``OUTDIR/curves.csv`` — ``frame, iter, loss, l1, dssim, normal, gamma, proj, psnr,
+n_surfels``; ``OUTDIR/summary.json`` — per-frame input-view PSNR (dB), timings
+(seconds), surfel counts; ``OUTDIR/renders/`` — ``frame<k>_<cam>.png``, observed (left)
+vs rendered (right).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from surfphase.cameras import Camera
+from surfphase.fit import binding
+from surfphase.io import atomic_path, atomic_write_json, atomic_write_text
+
+PER_SURFEL = ("means", "quats", "log_scales", "colors", "opacity")
+
+
+def stack_records(records: Sequence[dict], extent: float) -> dict[str, np.ndarray]:
+    """Pad the per-frame records to (F, N, ...) arrays (see the module table)."""
+    F = len(records)
+    N = max(r["means"].shape[0] for r in records)
+    D = records[0]["colors"].shape[1]
+    out: dict[str, np.ndarray] = {
+        "alive": np.zeros((F, N), dtype=bool),
+        "means": np.zeros((F, N, 3), np.float32),
+        "quats": np.zeros((F, N, 4), np.float32),
+        "log_scales": np.zeros((F, N, 2), np.float32),
+        "colors": np.zeros((F, N, D), np.float32),
+        "opacity": np.zeros((F, N), np.float32),
+        "sdf": np.full((F, N), np.nan, np.float32),
+        "bubble": np.full((F, N), -1, np.int32),
+        "gamma": np.full(F, np.nan, np.float32),
+    }
+    for t, r in enumerate(records):
+        n = r["means"].shape[0]
+        out["alive"][t, :n] = True
+        for k in PER_SURFEL:
+            out[k][t, :n] = r[k]
+        out["bubble"][t, :n] = r["bubble"]
+        if "sdf" in r:
+            out["sdf"][t, :n] = r["sdf"] * extent
+            out["gamma"][t] = r["gamma"] / extent
+    return out
+
+
+def surfel_velocities(means: np.ndarray, alive: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """(F, N, 3) per-surfel velocities (m/s): central differences where the surfel exists
+    at both neighbours, else one-sided, else 0."""
+    F = means.shape[0]
+    v = np.zeros(means.shape, dtype=np.float64)
+    m = means.astype(np.float64)
+    for t in range(F):
+        a = t - 1 if t > 0 else t
+        b = t + 1 if t < F - 1 else t
+        if a == b:
+            continue
+        ok = alive[a] & alive[b] & alive[t]
+        v[t, ok] = (m[b, ok] - m[a, ok]) / (times[b] - times[a])
+        if a != t and b != t:
+            # Surfels born at t: forward difference.
+            fwd = alive[t] & alive[b] & ~alive[a]
+            v[t, fwd] = (m[b, fwd] - m[t, fwd]) / (times[b] - times[t])
+    return v.astype(np.float32)
+
+
+def bubble_table(
+    arrays: dict[str, np.ndarray], times: np.ndarray, frames: np.ndarray
+) -> pd.DataFrame:
+    """Per frame and bubble: centroid (m) and velocity (m/s) from the surfels bound at that
+    frame (weights ``o·s_x·s_y`` at that frame), central differences in time."""
+    F = arrays["means"].shape[0]
+    rows = []
+    for t in range(F):
+        alive = arrays["alive"][t]
+        bub = np.where(alive, arrays["bubble"][t], -1)
+        w = binding.surfel_weights(arrays["opacity"][t], np.exp(arrays["log_scales"][t]))
+        w = np.where(alive, w, 0.0)
+        cent = binding.bubble_centroids(arrays["means"][t], bub, w)
+        a = t - 1 if t > 0 else t
+        b = t + 1 if t < F - 1 else t
+        for bid, c in sorted(cent.items()):
+            vel = np.full(3, np.nan)
+            if a != b:
+                sel = (bub == bid) & arrays["alive"][a] & arrays["alive"][b]
+                if sel.any():
+                    ids = np.where(sel, bid, -1)
+                    vd = binding.bubble_velocities(
+                        arrays["means"][a], arrays["means"][b], ids, w, times[b] - times[a]
+                    )
+                    if bid in vd:
+                        vel = vd[bid]
+            rows.append(
+                {
+                    "frame": int(frames[t]),
+                    "time_s": float(times[t]),
+                    "bubble": int(bid),
+                    "x": c[0],
+                    "y": c[1],
+                    "z": c[2],
+                    "vx": vel[0],
+                    "vy": vel[1],
+                    "vz": vel[2],
+                    "n_surfels": int((bub == bid).sum()),
+                }
+            )
+    cols = ["frame", "time_s", "bubble", "x", "y", "z", "vx", "vy", "vz", "n_surfels"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def load_surfels(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Read ``surfels.npz`` into a dict of arrays."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no surfels.npz")
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def render_surfels(
+    surfels: dict[str, np.ndarray],
+    frame: int,
+    cameras: Sequence[Camera],
+    device: str | torch.device = "cpu",
+    backgrounds: np.ndarray | None = None,
+) -> np.ndarray:
+    """Render frame index ``frame`` (0-based position in the file) of ``surfels`` into
+    ``cameras`` over ``backgrounds`` ((C, H, W, D) images; default the constant
+    ``surfels["background"]``); returns (C, H, W, D) float32 in [0, 1]."""
+    from surfphase.render import camera_tensors, rasterize_surfels
+
+    dev = torch.device(device)
+    a = surfels["alive"][frame]
+    f = lambda k: torch.as_tensor(surfels[k][frame][a], device=dev)  # noqa: E731
+    viewmats, Ks = camera_tensors(list(cameras), dev, torch.float32)
+    W, H = cameras[0].width, cameras[0].height
+    with torch.no_grad():
+        rgb, alpha, _ = rasterize_surfels(
+            f("means"),
+            f("quats"),
+            torch.exp(f("log_scales")),
+            f("opacity"),
+            f("colors"),
+            viewmats,
+            Ks,
+            W,
+            H,
+        )
+        bg = surfels["background"] if backgrounds is None else backgrounds
+        rgb = rgb + (1 - alpha) * torch.as_tensor(np.asarray(bg, np.float32), device=dev)
+    return rgb.clamp(0, 1).cpu().numpy()
+
+
+def _to_png(img: np.ndarray) -> np.ndarray:
+    a = np.clip(img, 0, 1)
+    if a.shape[-1] == 1:
+        a = a[..., 0]
+    return (a * 255 + 0.5).astype(np.uint8)
+
+
+def write_outputs(out_dir: Path, records, data, p: dict, background, extent: float, device):
+    """Write surfels.npz, bubbles.csv, curves.csv, renders/, summary.json; return summary."""
+    import cv2
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    F = len(records)
+    times = data.times[:F]
+    frames = data.frame_indices[:F]
+    arrays = stack_records(records, extent)
+    arrays["velocity"] = surfel_velocities(arrays["means"], arrays["alive"], times)
+    arrays["frame"] = frames
+    arrays["time_s"] = times
+    arrays["bg_images"] = np.asarray(background, np.float32)
+    arrays["background"] = np.median(arrays["bg_images"], axis=(0, 1, 2)).astype(np.float32)
+    arrays["extent"] = np.float64(extent)
+
+    # Renders of the input views: observed | rendered.
+    tmp_dir = out_dir / ".renders.part"
+    shutil.rmtree(tmp_dir, ignore_errors=True)
+    tmp_dir.mkdir(parents=True)
+    pick = sorted(set(np.linspace(0, F - 1, max(int(p["render_frames"]), 1)).round().astype(int)))
+    for t in pick:
+        rgb = render_surfels(arrays, t, data.cameras, device, arrays["bg_images"])
+        obs = data.images(t)
+        for c, cam in enumerate(data.cameras):
+            pair = np.concatenate([obs[c], rgb[c]], axis=1)
+            img = _to_png(pair)
+            if img.ndim == 3:
+                img = img[..., ::-1]
+            cv2.imwrite(str(tmp_dir / f"frame{int(frames[t]):05d}_{cam.name}.png"), img)
+    final = out_dir / "renders"
+    shutil.rmtree(final, ignore_errors=True)
+    os.replace(tmp_dir, final)
+
+    table = bubble_table(arrays, times, frames)
+    atomic_write_text(out_dir / "bubbles.csv", table.to_csv(index=False))
+    curves = pd.DataFrame([row for r in records for row in r["curves"]])
+    atomic_write_text(out_dir / "curves.csv", curves.to_csv(index=False))
+
+    secs = [r["seconds_optimise"] for r in records]
+    iters = [r["iters"] for r in records]
+    summary = {
+        "session": data.session,
+        "frames": F,
+        "cameras": [c.name for c in data.cameras],
+        "width": data.width,
+        "height": data.height,
+        "extent_m": extent,
+        "use_sdf": bool(p["use_sdf"]),
+        "guidance": bool(p["guidance"]),
+        "n_surfels": [int(r["means"].shape[0]) for r in records],
+        "psnr_per_frame": [r["psnr"] for r in records],
+        "psnr_mean": float(np.mean([np.mean(r["psnr"]) for r in records])),
+        "spawned": {int(r["frame"]): r["spawned"] for r in records if r["spawned"]},
+        "seconds_per_frame": [r["seconds"] for r in records],
+        "seconds_first_frame": secs[0],
+        "seconds_per_later_frame": float(np.mean(secs[1:])) if F > 1 else None,
+        "seconds_per_iter": float(np.sum(secs) / max(np.sum(iters), 1)),
+        "threads": torch.get_num_threads(),
+        "device": str(device),
+    }
+    atomic_write_json(out_dir / "summary.json", summary)
+    with atomic_path(out_dir / "surfels.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    return summary

@@ -1,0 +1,637 @@
+"""The stage-1 fit of one session: sequential per-frame optimisation of SDF surfels with
+bubble-guided tracking, checkpointed after every frame (DESIGN.md §3–4).
+
+Per frame ``t`` (in order):
+
+1. initialise — frame 0: surfels on the visual hull of the masks
+   (:mod:`surfphase.fit.init`); later frames: the previous frame's surfels, each
+   bubble's surfels advected by its velocity (:mod:`surfphase.fit.binding`), plus new
+   surfels for bubbles that appear;
+2. optimise ``λ_app Σ_c (L1 + D-SSIM) + λ_geo (w_n L_normal + w_γ L_γ + w_p L_proj)``
+   with Adam (ε = 1e-15); densify and prune at frame 0 only (a strategy object);
+3. bind every surfel to a bubble through the masks, and compute the bubble velocities
+   that advect the next frame;
+4. checkpoint (the frame's record, then the state), so a killed job resumes at the last
+   finished frame with a bit-identical result.
+
+Units: positions metres (lab frame), time seconds, velocity m/s. The SDF value ``f`` and
+the sharpness ``γ`` are optimised in units of the scene extent ``L`` (m,
+:func:`surfphase.fit.init.scene_extent`); see :mod:`surfphase.fit.model`.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import os
+import time
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from surfphase.cameras import Camera, load_cameras
+from surfphase.device import resolve_device
+from surfphase.fit import binding, init, losses
+from surfphase.fit.densify import Densify2DGS, NoDensify, append_surfels
+from surfphase.fit.model import HALF_OPACITY_GF, SurfelModel
+from surfphase.io import atomic_path
+
+#: Every hyperparameter of the fit, with its default (mirrored in config.yaml ``fit:``).
+#: Units are given per entry; ``L`` is the scene extent in metres.
+DEFAULTS: dict = {
+    "seed": 0,  # torch generator seed (densification splits, subsampling)
+    "frames": None,  # fit only the first N frames of the session (None: all)
+    "use_sdf": True,  # False: "no SDF" ablation, opacity optimised directly
+    "guidance": True,  # False: "no bubble guidance" ablation, plain per-frame refit
+    # -- iterations -------------------------------------------------------------------
+    "iters_first": 500,  # Adam steps at frame 0 (with densification)
+    "iters_next": 80,  # Adam steps at every later frame
+    # -- initialisation ---------------------------------------------------------------
+    "n_init": 3000,  # at most this many surfels seeded on the visual hull
+    "hull_grid": 48,  # hull voxels along the longest bounding-box side
+    "init_scale": 0.8,  # initial surfel std, in hull-voxel spacings
+    "init_sdf": 0.1,  # initial |f|, units of L (opacity 1/2 at the initial γ)
+    "spawn_min_surfels": 30,  # a mask bubble with fewer bound surfels gets new ones
+    "spawn_max_surfels": 400,  # at most this many surfels per newly appearing bubble
+    "spawn_grid": 24,  # hull voxels per newly appearing bubble
+    # -- learning rates (2DGS's, f: 0.05) ---------------------------------------------
+    "lr_means": 2e-3,  # units of L per step: the metric rate is lr_means·L m
+    "lr_means_decay": 0.1,  # exponential decay of lr_means over each frame's steps
+    "lr_log_scales": 5e-3,
+    "lr_quats": 1e-3,
+    "lr_colors": 2.5e-3,
+    "lr_sdf": 0.05,  # f in units of L
+    "lr_log_gamma": 0.01,  # on ln γ
+    "lr_opacity": 0.05,  # opacity logit, "no SDF" ablation only
+    "adam_eps": 1e-15,
+    # -- loss weights -----------------------------------------------------------------
+    "lambda_app": 1.0,
+    "lambda_dssim": 0.2,  # L1/D-SSIM mix: (1-λ)·L1 + λ·(1-SSIM)
+    "lambda_geo": 1.0,
+    "w_normal": 0.05,
+    "w_gamma": 0.01,  # on L_γ/γ_m (relative hinge, dimensionless)
+    "w_proj": 0.1,  # on L_proj (units of L)
+    "geo_from": 0.3,  # fraction of frame 0's steps before geometry losses start
+    "proj_threshold": 0.1,  # L_proj ignores depth errors above this many L (metres/L)
+    # -- densification (frame 0 only) -------------------------------------------------
+    "densify": True,
+    "densify_start": 0.1,  # fractions of iters_first
+    "densify_stop": 0.6,
+    "densify_every": 50,
+    "grow_grad2d": 2e-4,  # NDC units, as 3DGS/2DGS/gsplat
+    "grow_scale": 0.01,  # units of L
+    "prune_opacity": 0.05,
+    "prune_scale": 0.1,  # units of L
+    "max_surfels": 6000,
+    # -- bubble guidance --------------------------------------------------------------
+    "v_init_nucleation": [0.03, 0.03, 0.0],  # m/s, lab frame: bubble 0 before history
+    "v_init_bubble": [0.07, 0.3, 0.0],  # m/s, lab frame: other bubbles before history
+    # -- outputs ----------------------------------------------------------------------
+    "background": "images",  # "images": per-view temporal median of background pixels;
+    # "constant": one colour, the median of those; or a number in [0, 1]
+    "render_frames": 3,  # frames with observed-vs-rendered PNGs
+    "log_every": 10,  # curves.csv row every N steps (and the last)
+}
+
+
+def merge_params(params: Mapping | None) -> dict:
+    """``DEFAULTS`` updated with ``params``; unknown keys are an error."""
+    out = copy.deepcopy(DEFAULTS)
+    for k, v in (params or {}).items():
+        if k not in DEFAULTS:
+            raise ValueError(f"fit: unknown parameter {k!r}")
+        out[k] = v
+    return out
+
+
+# -- inputs ------------------------------------------------------------------------------
+class SessionData:
+    """The frames, masks and cameras of one session (memory-mapped stacks).
+
+    ``images(t)`` → (C, H, W, D) float32 in [0, 1]; ``labels(t)`` → C × (H, W) int32.
+    """
+
+    def __init__(self, ingest_dir: str | os.PathLike, masks_dir: str | os.PathLike):
+        ingest_dir, masks_dir = Path(ingest_dir), Path(masks_dir)
+        cam_path = ingest_dir / "cameras.json"
+        if not cam_path.exists():
+            raise FileNotFoundError(f"{cam_path}: no cameras.json in the ingest folder")
+        cams = load_cameras(cam_path)
+        meta_path = ingest_dir / "meta.json"
+        if not meta_path.exists():
+            raise FileNotFoundError(f"{meta_path}: no meta.json in the ingest folder")
+        try:
+            self.meta = json.loads(meta_path.read_text())
+        except ValueError as e:
+            raise ValueError(f"{meta_path}: not valid JSON ({e})") from e
+        self.session = str(self.meta.get("session", ingest_dir.name))
+        self.fps = float(self.meta.get("fps", 0) or 0)
+        if not self.fps > 0:
+            raise ValueError(f"{meta_path}: session {self.session}: fps must be positive")
+        self.cameras: list[Camera] = []
+        self.stacks: list[np.ndarray] = []
+        self.label_stacks: list[np.ndarray] = []
+        for name, cam in cams.items():
+            p = ingest_dir / f"{name}.npy"
+            if not p.exists():
+                continue
+            m = masks_dir / f"{name}_labels.npy"
+            if not m.exists():
+                raise FileNotFoundError(f"{m}: session {self.session}: no masks for {name}")
+            stack = np.load(p, mmap_mode="r")
+            labs = np.load(m, mmap_mode="r")
+            if stack.shape[1:3] != (cam.height, cam.width):
+                raise ValueError(
+                    f"{p}: session {self.session}: frames are {stack.shape[1:3]}, "
+                    f"cameras.json says {(cam.height, cam.width)}"
+                )
+            if labs.shape[:3] != stack.shape[:3]:
+                raise ValueError(
+                    f"{m}: session {self.session}: masks {labs.shape} do not match "
+                    f"frames {stack.shape}"
+                )
+            self.cameras.append(cam.undistorted())
+            self.stacks.append(stack)
+            self.label_stacks.append(labs)
+        if len(self.cameras) < 2:
+            raise ValueError(
+                f"{ingest_dir}: session {self.session}: need frame stacks of ≥ 2 cameras "
+                f"listed in cameras.json, found {len(self.cameras)}"
+            )
+        self.n_frames = min(s.shape[0] for s in self.stacks)
+        idx = self.meta.get("frame_indices") or self.meta.get("frames")
+        if isinstance(idx, list) and len(idx) >= self.n_frames:
+            self.frame_indices = np.asarray(idx[: self.n_frames], dtype=np.int64)
+        else:
+            self.frame_indices = np.arange(self.n_frames, dtype=np.int64)
+        self.times = self.frame_indices / self.fps
+        self.height, self.width = self.stacks[0].shape[1:3]
+
+    def images(self, t: int) -> np.ndarray:
+        out = []
+        for s in self.stacks:
+            a = np.asarray(s[t])
+            if a.dtype == np.uint16:
+                a = a.astype(np.float32) / 65535.0
+            elif a.dtype == np.uint8:
+                a = a.astype(np.float32) / 255.0
+            else:
+                a = a.astype(np.float32)
+            if a.ndim == 2:
+                a = a[..., None]
+            out.append(np.clip(a, 0.0, 1.0))
+        return np.stack(out)
+
+    def labels(self, t: int) -> list[np.ndarray]:
+        return [np.asarray(s[t]).astype(np.int32) for s in self.label_stacks]
+
+    def fingerprint(self) -> str:
+        h = hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode())
+        for s, lab in zip(self.stacks, self.label_stacks, strict=True):
+            h.update(str((s.shape, str(s.dtype), lab.shape)).encode())
+            h.update(np.ascontiguousarray(s[0]).tobytes())
+            h.update(np.ascontiguousarray(lab[-1]).tobytes())
+        for c in self.cameras:
+            h.update(json.dumps(c.to_dict(), sort_keys=True).encode())
+        return h.hexdigest()
+
+
+# -- optimisation ------------------------------------------------------------------------
+def make_optimizer(model: SurfelModel, p: dict) -> torch.optim.Adam:
+    """One Adam over named groups; the position rate is ``lr_means·L`` metres per step."""
+    lrs = {
+        "means": p["lr_means"] * model.extent,
+        "log_scales": p["lr_log_scales"],
+        "quats": p["lr_quats"],
+        "colors": p["lr_colors"],
+        "sdf": p["lr_sdf"],
+        "log_gamma": p["lr_log_gamma"],
+        "opacity_logit": p["lr_opacity"],
+    }
+    groups = [{"params": [v], "lr": lrs[k], "name": k} for k, v in model.params.items()]
+    return torch.optim.Adam(groups, lr=0.0, eps=p["adam_eps"])
+
+
+def _render(model: SurfelModel, viewmats, Ks, width, height, backgrounds: torch.Tensor):
+    """Render the model over per-view background images (C, H, W, D)."""
+    from surfphase.render import rasterize_surfels
+
+    rgb, alpha, meta = rasterize_surfels(
+        model.means,
+        model.quats,
+        model.scales,
+        model.opacities(),
+        model.colors,
+        viewmats,
+        Ks,
+        width,
+        height,
+    )
+    return rgb + (1.0 - alpha) * backgrounds, alpha, meta
+
+
+def estimate_backgrounds(data: SessionData, n_frames: int, max_frames: int = 64) -> np.ndarray:
+    """Per-view background images (C, H, W, D) in [0, 1]: the per-pixel median over time of
+    the pixels the masks call background (backlight, plate, static dirt); pixels that are
+    never background take the nearest background pixel's value."""
+    from scipy import ndimage
+
+    idx = np.unique(np.linspace(0, n_frames - 1, min(n_frames, max_frames)).round().astype(int))
+    imgs = np.stack([data.images(t) for t in idx])  # (K, C, H, W, D)
+    labs = np.stack([np.stack(data.labels(t)) for t in idx])  # (K, C, H, W)
+    out = np.empty(imgs.shape[1:], dtype=np.float32)
+    for c in range(imgs.shape[1]):
+        x = np.where((labs[:, c] < 0)[..., None], imgs[:, c], np.nan)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: filled below
+            med = np.nanmedian(x, axis=0)
+        missing = np.isnan(med[..., 0])
+        if missing.all():
+            med = np.broadcast_to(np.median(imgs[:, c], axis=(0, 1, 2)), med.shape).copy()
+        elif missing.any():
+            _, (ri, ci) = ndimage.distance_transform_edt(missing, return_indices=True)
+            med = med[ri, ci]
+        out[c] = med
+    return out
+
+
+def fit_frame(
+    model: SurfelModel,
+    observed: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    background: torch.Tensor,
+    p: dict,
+    iters: int,
+    strategy,
+    frame: int,
+    generator: torch.Generator,
+    geo_from: int = 0,
+) -> list[dict]:
+    """Optimise ``model`` on one frame's (C, H, W, D) ``observed`` images. Returns the
+    logged curve rows."""
+    C, H, W, D = observed.shape
+    opt = make_optimizer(model, p)
+    state = strategy.initialize_state(model.n)
+    rows = []
+    base_lr = p["lr_means"] * model.extent
+    for it in range(iters):
+        frac = it / max(iters - 1, 1)
+        for g in opt.param_groups:
+            if g["name"] == "means":
+                g["lr"] = base_lr * p["lr_means_decay"] ** frac
+        rgb, alpha, meta = _render(model, viewmats, Ks, W, H, background)
+        strategy.before_backward(meta)
+        app, l1v, dssim = losses.photometric_loss(rgb, observed, p["lambda_dssim"])
+        loss = p["lambda_app"] * app
+        geo_on = it >= geo_from
+        ln = lg = lp = torch.zeros(())
+        if geo_on:
+            ln = losses.normal_consistency(
+                meta["normals_camera"], meta["normals_from_depth"], alpha
+            )
+            pts = model.zero_level_points()
+            lp = losses.projection_loss(
+                pts, meta["depth_expected"], viewmats, Ks, model.extent, p["proj_threshold"]
+            )
+            if model.use_sdf:
+                sdf = model.params["sdf"]
+                lg = losses.gamma_hinge(model.gamma, sdf) / losses.gamma_target(sdf)
+            loss = loss + p["lambda_geo"] * (
+                p["w_normal"] * ln + p["w_gamma"] * lg + p["w_proj"] * lp
+            )
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        meta["width"], meta["height"] = W, H
+        if isinstance(strategy, Densify2DGS):
+            strategy.after_backward(model, opt, state, it, meta, generator=generator)
+            # Gradients belong to replaced tensors after a refinement: skip that step.
+            if any(p_.grad is None for g in opt.param_groups for p_ in g["params"]):
+                opt.zero_grad(set_to_none=True)
+                continue
+        opt.step()
+        with torch.no_grad():
+            model.params["quats"].data /= (
+                model.params["quats"].data.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            )
+        if it % p["log_every"] == 0 or it == iters - 1:
+            rows.append(
+                {
+                    "frame": frame,
+                    "iter": it,
+                    "loss": float(loss.detach()),
+                    "l1": float(l1v.detach()),
+                    "dssim": float(dssim.detach()),
+                    "normal": float(ln.detach()),
+                    "gamma": float(lg.detach()),
+                    "proj": float(lp.detach()),
+                    "psnr": losses.psnr(rgb, observed),
+                    "n_surfels": model.n,
+                }
+            )
+    return rows
+
+
+# -- checkpoints -------------------------------------------------------------------------
+def _save_torch(path: Path, obj) -> None:
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+
+
+def _load_checkpoint(ckpt: Path, key: str) -> tuple[dict | None, list[dict]]:
+    """The saved state and frame records if ``ckpt`` holds a run with this ``key``."""
+    sp = ckpt / "state.pt"
+    if not sp.exists():
+        return None, []
+    state = torch.load(sp, weights_only=False)
+    if state.get("key") != key:
+        return None, []
+    records = []
+    for t in range(state["next_frame"]):
+        fp = ckpt / f"frame_{t:05d}.pt"
+        if not fp.exists():
+            return None, []
+        records.append(torch.load(fp, weights_only=False))
+    return state, records
+
+
+def _run_key(data: SessionData, p: dict) -> str:
+    h = hashlib.sha256(json.dumps(p, sort_keys=True, default=str).encode())
+    h.update(data.fingerprint().encode())
+    return h.hexdigest()
+
+
+# -- the frame loop ----------------------------------------------------------------------
+def _initial_model(data: SessionData, p: dict, gen: torch.Generator, dtype) -> SurfelModel:
+    labels = data.labels(0)
+    images = data.images(0)
+    spheres = init.bubble_spheres(data.cameras, labels)
+    if not spheres:
+        raise ValueError(f"session {data.session}: no bubble mask at frame 0 is seen in 2 views")
+    extent = init.scene_extent(spheres)
+    hull = init.visual_hull_surfels(
+        data.cameras, labels, list(images), spheres=spheres, grid=p["hull_grid"]
+    )
+    if hull.points.shape[0] == 0:
+        raise ValueError(f"session {data.session}: the visual hull of frame 0 is empty")
+    n = hull.points.shape[0]
+    if n > p["n_init"]:
+        idx = torch.randperm(n, generator=gen)[: p["n_init"]].sort().values.numpy()
+    else:
+        idx = np.arange(n)
+    t = lambda a: torch.as_tensor(a[idx], dtype=dtype)  # noqa: E731
+    return SurfelModel.from_points(
+        t(hull.points),
+        t(hull.normals),
+        t(hull.colors),
+        hull.spacing * p["init_scale"],
+        extent=extent,
+        init_sdf=p["init_sdf"],
+        use_sdf=p["use_sdf"],
+    )
+
+
+def _spawn_bubbles(
+    model: SurfelModel, data: SessionData, t: int, p: dict, gen: torch.Generator
+) -> list[int]:
+    """Add surfels for bubbles that the masks of frame ``t`` show but no surfel covers."""
+    labels = data.labels(t)
+    spheres = init.bubble_spheres(data.cameras, labels)
+    bound = binding.bind_surfels_to_bubbles(
+        model.means.detach().double().numpy(), data.cameras, labels
+    )
+    images = None
+    added = []
+    for b in sorted(spheres):
+        if int((bound == b).sum()) >= p["spawn_min_surfels"]:
+            continue
+        if images is None:
+            images = list(data.images(t))
+        hull = init.visual_hull_surfels(
+            data.cameras, labels, images, bubble=b, spheres=spheres, grid=p["spawn_grid"]
+        )
+        n = hull.points.shape[0]
+        if n == 0:
+            continue
+        idx = np.arange(n)
+        if n > p["spawn_max_surfels"]:
+            idx = torch.randperm(n, generator=gen)[: p["spawn_max_surfels"]].sort().values.numpy()
+        dt = model.means.dtype
+        new = SurfelModel.from_points(
+            torch.as_tensor(hull.points[idx], dtype=dt),
+            torch.as_tensor(hull.normals[idx], dtype=dt),
+            torch.as_tensor(hull.colors[idx], dtype=dt),
+            hull.spacing * p["init_scale"],
+            extent=model.extent,
+            init_sdf=p["init_sdf"],
+            use_sdf=model.use_sdf,
+        )
+        vals = new.state()
+        if model.use_sdf:
+            # New surfels start at opacity 1/2 under the current γ.
+            vals["sdf"] = torch.full_like(vals["sdf"], HALF_OPACITY_GF / float(model.gamma))
+        append_surfels(model, None, {k: v for k, v in vals.items() if v.dim() > 0})
+        added.append(b)
+    return added
+
+
+def _record(model: SurfelModel, bubble: np.ndarray) -> dict:
+    st = model.state()
+    rec = {k: v.cpu().numpy().astype(np.float32) for k, v in st.items() if v.dim() > 0}
+    rec["opacity"] = model.opacities().detach().cpu().numpy().astype(np.float32)
+    rec["gamma"] = float(model.gamma.detach())
+    rec["bubble"] = bubble.astype(np.int32)
+    return rec
+
+
+def _backgrounds(data: SessionData, n_frames: int, p: dict) -> np.ndarray:
+    """(C, H, W, D) float32 background images for the fit (see ``background`` in DEFAULTS)."""
+    bg = p["background"]
+    C, H, W = len(data.cameras), data.height, data.width
+    D = data.images(0).shape[-1]
+    if isinstance(bg, str):
+        if bg not in ("images", "constant"):
+            raise ValueError(
+                f"fit: background must be 'images', 'constant' or a number, not {bg!r}"
+            )
+        imgs = estimate_backgrounds(data, n_frames)
+        if bg == "constant":
+            imgs = np.broadcast_to(np.median(imgs, axis=(0, 1, 2)), imgs.shape).copy()
+        return imgs.astype(np.float32)
+    return np.full((C, H, W, D), float(bg), dtype=np.float32)
+
+
+def _advect_velocities(
+    records: list[dict], data: SessionData, p: dict
+) -> tuple[dict[int, np.ndarray], np.ndarray]:
+    """Bubble and per-surfel velocities (m/s) from the last two finished frames.
+
+    Uses the surfels bound to each bubble at the last frame, their positions at both
+    frames; bubbles (and surfels) without history get the configured initial velocity.
+    """
+    cur = records[-1]
+    bub = cur["bubble"]
+    v_nuc = np.asarray(p["v_init_nucleation"], dtype=np.float64)
+    v_bub = np.asarray(p["v_init_bubble"], dtype=np.float64)
+    surfel_v = np.where((bub == 0)[:, None], v_nuc, 0.0)
+    vb: dict[int, np.ndarray] = {}
+    if len(records) >= 2:
+        prev = records[-2]
+        m = prev["means"].shape[0]
+        dt = data.times[len(records) - 1] - data.times[len(records) - 2]
+        w = binding.surfel_weights(cur["opacity"][:m], np.exp(cur["log_scales"][:m]))
+        vb = binding.bubble_velocities(prev["means"], cur["means"][:m], bub[:m], w, dt)
+        surfel_v[:m] = (cur["means"][:m].astype(np.float64) - prev["means"]) / dt
+    for b in np.unique(bub):
+        if b > 0 and int(b) not in vb:
+            vb[int(b)] = v_bub
+        if b == 0 and 0 not in vb:
+            vb[0] = v_nuc
+    return vb, surfel_v
+
+
+def run_fit(
+    ingest_dir: str | os.PathLike,
+    masks_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    params: Mapping | None = None,
+    device: str = "auto",
+    checkpoint_dir: str | os.PathLike | None = None,
+    stop_after: int | None = None,
+) -> dict:
+    """Fit one session; write ``out_dir`` (see :mod:`surfphase.fit.outputs`).
+
+    Args:
+        ingest_dir: ``<cam>.npy`` frame stacks, ``cameras.json``, ``meta.json``.
+        masks_dir: ``<cam>_labels.npy`` instance masks.
+        out_dir: output folder.
+        params: overrides of :data:`DEFAULTS`.
+        device: ``auto``, ``cpu`` or ``cuda``.
+        checkpoint_dir: where per-frame checkpoints go (default ``<out_dir>.ckpt``);
+            an existing checkpoint of the same inputs and parameters is resumed.
+        stop_after: finish after this many frames without writing outputs (tests).
+
+    Returns:
+        The summary dict (also written to ``out_dir/summary.json``).
+    """
+    from surfphase.fit import outputs
+    from surfphase.render import camera_tensors
+
+    p = merge_params(params)
+    out_dir = Path(out_dir)
+    ckpt = Path(checkpoint_dir) if checkpoint_dir else out_dir.parent / (out_dir.name + ".ckpt")
+    dev = resolve_device(device)
+    dtype = torch.float32
+    data = SessionData(ingest_dir, masks_dir)
+    n_frames = data.n_frames if p["frames"] is None else min(int(p["frames"]), data.n_frames)
+    if n_frames < 1:
+        raise ValueError(f"session {data.session}: no frames to fit")
+    key = _run_key(data, {**p, "frames": n_frames})
+    viewmats, Ks = camera_tensors(data.cameras, dev, dtype)
+
+    state, records = _load_checkpoint(ckpt, key)
+    gen = torch.Generator().manual_seed(int(p["seed"]))
+    if state is None:
+        ckpt.mkdir(parents=True, exist_ok=True)
+        for old in ckpt.glob("*.pt"):
+            old.unlink()
+        model = _initial_model(data, p, gen, dtype)
+        background = _backgrounds(data, n_frames, p)
+        start = 0
+    else:
+        model = SurfelModel(state["params"], extent=state["extent"], use_sdf=p["use_sdf"])
+        gen.set_state(state["generator"])
+        background = state["background"]
+        start = state["next_frame"]
+    model.params = {k: v.detach().to(dev).requires_grad_(True) for k, v in model.params.items()}
+    bg_t = torch.as_tensor(background, dtype=dtype, device=dev)
+
+    for t in range(start, n_frames):
+        t0 = time.perf_counter()
+        labels = data.labels(t)
+        spawned: list[int] = []
+        if t > 0:
+            if p["guidance"]:
+                vb, vs = _advect_velocities(records, data, p)
+                dt = data.times[t] - data.times[t - 1]
+                new_means = binding.advect(
+                    records[-1]["means"], records[-1]["bubble"], vb, vs, dt, per_surfel_ids=(0,)
+                )
+                with torch.no_grad():
+                    model.params["means"].data.copy_(torch.as_tensor(new_means, dtype=dtype))
+            model.params = {k: v.detach().cpu() for k, v in model.params.items()}
+            spawned = _spawn_bubbles(model, data, t, p, gen)
+            model.params = {
+                k: v.detach().to(dev).requires_grad_(True) for k, v in model.params.items()
+            }
+        observed = torch.as_tensor(data.images(t), device=dev)
+        if t == 0:
+            iters = int(p["iters_first"])
+            strategy = (
+                Densify2DGS(
+                    refine_start=int(p["densify_start"] * iters),
+                    refine_stop=int(p["densify_stop"] * iters),
+                    refine_every=int(p["densify_every"]),
+                    grow_grad2d=p["grow_grad2d"],
+                    grow_scale=p["grow_scale"],
+                    prune_opacity=p["prune_opacity"],
+                    prune_scale=p["prune_scale"],
+                    max_surfels=int(p["max_surfels"]),
+                )
+                if p["densify"]
+                else NoDensify()
+            )
+            geo_from = int(p["geo_from"] * iters)
+        else:
+            iters, strategy, geo_from = int(p["iters_next"]), NoDensify(), 0
+        t_opt = time.perf_counter()
+        rows = fit_frame(
+            model, observed, viewmats, Ks, bg_t, p, iters, strategy, t, gen, geo_from=geo_from
+        )
+        t_done = time.perf_counter()
+        with torch.no_grad():
+            rgb, _, _ = _render(model, viewmats, Ks, data.width, data.height, bg_t)
+        view_psnr = [losses.psnr(rgb[c], observed[c]) for c in range(observed.shape[0])]
+        model_cpu = SurfelModel(
+            {k: v.detach().cpu() for k, v in model.params.items()},
+            extent=model.extent,
+            use_sdf=model.use_sdf,
+        )
+        bubble = binding.bind_surfels_to_bubbles(
+            model_cpu.means.detach().double().numpy(), data.cameras, labels
+        )
+        rec = _record(model_cpu, bubble)
+        rec.update(
+            {
+                "frame": t,
+                "curves": rows,
+                "psnr": view_psnr,
+                "iters": iters,
+                "spawned": spawned,
+                "seconds": time.perf_counter() - t0,
+                "seconds_optimise": t_done - t_opt,
+            }
+        )
+        records.append(rec)
+        _save_torch(ckpt / f"frame_{t:05d}.pt", rec)
+        _save_torch(
+            ckpt / "state.pt",
+            {
+                "key": key,
+                "next_frame": t + 1,
+                "params": model_cpu.state(),
+                "extent": model.extent,
+                "generator": gen.get_state(),
+                "background": background,
+            },
+        )
+        if stop_after is not None and t + 1 >= stop_after:
+            return {"stopped_after": t + 1}
+
+    return outputs.write_outputs(
+        out_dir, records, data, p, background, extent=model.extent, device=dev
+    )

@@ -1,0 +1,214 @@
+"""Ingest stage: a session's raw recordings → undistorted frame stacks on disk.
+
+Per camera: read the frames of the session's frame range (:mod:`surfphase.video`),
+undistort them with the rig's calibration keeping the same intrinsics
+(``cv2.initUndistortRectifyMap`` with ``newCameraMatrix = K``, bilinear), crop, then
+downscale with ``cv2.INTER_AREA``. Outputs in ``out``:
+
+* ``<cam>.npy``: float32 (frames, H, W), grey levels in [0, 1] (the source divided by
+  its full scale, 255 or 65535), readable memory-mapped with :func:`load_frames`;
+* ``cameras.json``: the cameras the stacks are seen by (no distortion, cropped and
+  scaled intrinsics, same extrinsics);
+* ``meta.json``: session, fps, frame indices in the source, crop/scale, and per camera
+  the source path, kind, bit depth, size and count (written last).
+
+Frames are processed one at a time, so a long recording never sits in memory.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from surfphase.cameras import Camera, save_cameras
+from surfphase.io import atomic_path, atomic_write_json, load_stack
+from surfphase.video import open_video
+
+
+def parse_frames(spec: str | None, count: int, source: str = "") -> np.ndarray:
+    """Frame indices of ``start:stop[:step]`` (stop exclusive, Python-style) in ``count``.
+
+    Empty ``start`` is 0, empty ``stop`` is ``count``; None or ``""`` is every frame.
+    Raises ValueError (naming ``source``) for a malformed range or one beyond the video.
+    """
+    where = f"{source}: " if source else ""
+    if spec is None or str(spec).strip() == "":
+        return np.arange(count)
+    parts = str(spec).strip().split(":")
+    if len(parts) not in (2, 3):
+        raise ValueError(f"{where}frame range {spec!r} is not start:stop[:step]")
+    try:
+        start = int(parts[0]) if parts[0] else 0
+        stop = int(parts[1]) if parts[1] else count
+        step = int(parts[2]) if len(parts) == 3 and parts[2] else 1
+    except ValueError as e:
+        raise ValueError(f"{where}frame range {spec!r} is not start:stop[:step]") from e
+    if start < 0 or stop < 0 or step <= 0:
+        raise ValueError(f"{where}frame range {spec!r}: need start, stop >= 0 and step > 0")
+    if stop > count:
+        raise ValueError(f"{where}frame range {spec!r} goes beyond the video ({count} frames)")
+    if start >= stop:
+        raise ValueError(f"{where}frame range {spec!r} is empty")
+    return np.arange(start, stop, step)
+
+
+def output_camera(cam: Camera, crop: tuple[int, int, int, int] | None, size: tuple[int, int]):
+    """The camera that sees the undistorted, cropped, resized frames of ``size`` (W, H).
+
+    Resizing uses the pixel-centre convention per axis: ``u' = (u + 0.5)·W'/W − 0.5``.
+    """
+    out = cam.undistorted()
+    if crop is not None:
+        out = out.cropped(*crop)
+    sx, sy = size[0] / out.width, size[1] / out.height
+    K = out.K.copy()
+    K[0, :] *= sx
+    K[1, :] *= sy
+    K[0, 2] += 0.5 * sx - 0.5
+    K[1, 2] += 0.5 * sy - 0.5
+    return replace(out, K=K, width=int(size[0]), height=int(size[1]))
+
+
+def _check_crop(crop, width: int, height: int, where: str) -> tuple[int, int, int, int] | None:
+    if crop is None:
+        return None
+    if len(crop) != 4:
+        raise ValueError(f"{where}crop must be x0,y0,w,h pixels, not {crop!r}")
+    x0, y0, w, h = (int(v) for v in crop)
+    if x0 < 0 or y0 < 0 or w <= 0 or h <= 0 or x0 + w > width or y0 + h > height:
+        raise ValueError(
+            f"{where}crop {x0},{y0},{w},{h} does not fit in the {width}×{height} image"
+        )
+    return x0, y0, w, h
+
+
+def ingest_session(
+    session: str,
+    cameras: dict[str, Camera],
+    videos: dict[str, Path],
+    fps: float,
+    frames: str | None = None,
+    scale: float = 1.0,
+    crop: tuple[int, int, int, int] | None = None,
+    out: Path = Path("."),
+) -> dict:
+    """Undistort, crop and downscale a session's recordings into frame stacks in ``out``.
+
+    Args:
+        session: session id (named in every error).
+        cameras: the rig's calibrated cameras (raw-image intrinsics and distortion).
+        videos: ``{camera name: recording path}`` (video file, image folder, TIFF stack).
+        fps: the session's frame rate, frames per second.
+        frames: ``start:stop[:step]`` in source frames, or None for all.
+        scale: output size factor after cropping (e.g. 0.25), in (0, 1].
+        crop: ``(x0, y0, w, h)`` pixels of the undistorted full-size image, or None.
+        out: output folder.
+
+    Returns:
+        The metadata written to ``out/meta.json``.
+    """
+    where = f"session {session}: "
+    if not videos:
+        raise ValueError(f"{where}no camera recordings given")
+    if not fps or fps <= 0:
+        raise ValueError(f"{where}fps must be positive, not {fps!r}")
+    if not 0 < scale <= 1:
+        raise ValueError(f"{where}scale must be in (0, 1], not {scale!r}")
+    sources = {}
+    for name, path in videos.items():
+        if name not in cameras:
+            raise ValueError(
+                f"{where}camera {name} ({path}) is not in the calibration "
+                f"(cameras: {', '.join(cameras)})"
+            )
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{where}recording of {name} not found: {path}")
+        try:
+            sources[name] = open_video(path)
+        except ValueError as e:
+            raise ValueError(f"{where}camera {name}: {e}") from e
+    names = list(sources)
+    ref = sources[names[0]]
+    for name in names[1:]:
+        src = sources[name]
+        if src.count != ref.count:
+            raise ValueError(
+                f"{where}cameras have different frame counts: {names[0]} {ref.path} has "
+                f"{ref.count} frames, {name} {src.path} has {src.count}"
+            )
+    for name in names:
+        src, cam = sources[name], cameras[name]
+        if src.shape != (cam.height, cam.width):
+            raise ValueError(
+                f"{where}{name} {src.path} is {src.shape[1]}×{src.shape[0]} pixels but was "
+                f"calibrated at {cam.width}×{cam.height}"
+            )
+    indices = parse_frames(frames, ref.count, source=f"{where}{ref.path}")
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    out_cams: dict[str, Camera] = {}
+    per_cam = {}
+    for name in names:
+        src, cam = sources[name], cameras[name]
+        c = _check_crop(crop, cam.width, cam.height, f"{where}{name}: ")
+        cw, ch = (c[2], c[3]) if c else (cam.width, cam.height)
+        size = (max(1, int(round(cw * scale))), max(1, int(round(ch * scale))))
+        map1, map2 = cv2.initUndistortRectifyMap(
+            cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1
+        )
+        full_scale = float(2**src.bit_depth - 1)
+        with atomic_path(out / f"{name}.npy") as tmp:
+            stack = np.lib.format.open_memmap(
+                tmp, mode="w+", dtype=np.float32, shape=(len(indices), size[1], size[0])
+            )
+            for k, frame in enumerate(src.read(indices)):
+                img = frame.astype(np.float32) / np.float32(full_scale)
+                img = cv2.remap(
+                    img, map1, map2, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                )
+                if c:
+                    img = img[c[1] : c[1] + c[3], c[0] : c[0] + c[2]]
+                if size != (img.shape[1], img.shape[0]):
+                    img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+                stack[k] = img
+            stack.flush()
+            del stack
+        out_cams[name] = output_camera(cam, c, size)
+        per_cam[name] = {
+            "source": str(src.path),
+            "source_kind": src.kind,
+            "source_bit_depth": src.bit_depth,
+            "source_size": [src.shape[1], src.shape[0]],
+            "source_count": src.count,
+            "source_fps": src.fps,
+            "size": list(size),
+            "count": len(indices),
+            "stack": f"{name}.npy",
+        }
+    save_cameras(out / "cameras.json", out_cams, session=session)
+    meta = {
+        "session": session,
+        "fps": float(fps),
+        "frames": frames or "",
+        "frame_indices": indices.tolist(),
+        "scale": float(scale),
+        "crop": list(crop) if crop is not None else None,
+        "dtype": "float32",
+        "value_range": [0.0, 1.0],
+        "cameras": per_cam,
+    }
+    atomic_write_json(out / "meta.json", meta)
+    return meta
+
+
+def load_frames(outdir: str | Path, cam: str) -> np.ndarray:
+    """Memory-mapped float32 frames (frames, H, W) in [0, 1] of ``cam`` from an ingest folder."""
+    path = Path(outdir) / f"{cam}.npy"
+    if not path.is_file():
+        raise FileNotFoundError(f"no ingested frames of {cam}: {path}")
+    return load_stack(path)

@@ -1,0 +1,309 @@
+"""Readers for high-speed camera formats: Photron MRAW (+ CIH/CIHX) and Phantom CINE.
+
+:func:`open_lab_video` returns a reader with the same interface as
+``surfphase.video.open_video``: ``.count`` (frames), ``.shape`` (H, W) in pixels,
+``.bit_depth`` (significant bits per pixel: 8, 10, 12, 14 or 16), ``.fps`` (frames per
+second from the header, or ``None``) and ``read(indices)``, an iterator of 2D arrays
+(``uint8`` when ``bit_depth <= 8``, else ``uint16`` holding values in
+``[0, 2**bit_depth)``), one per index, in the order asked. Frames are read one at a
+time from a memory map, so a long recording is never loaded whole.
+
+Photron: a recording is a ``.cih`` (text) or ``.cihx`` (XML) header plus a ``.mraw`` of
+the same name holding the frames back to back, row-major, top row first, 8-bit,
+16-bit, or 12-bit packed (two pixels in three bytes, big-endian bit order). The header
+is parsed with pyMRAW; the 12-bit unpacking is pyMRAW's, applied frame by frame. Any of
+the three paths may be given.
+
+Phantom: a ``.cine`` file is a CINEFILEHEADER (44 bytes), a BITMAPINFOHEADER (40 bytes),
+a SETUP block (frame rate, real bit depth), a table of 64-bit image offsets, and per
+image an annotation block followed by the pixels, bottom row first (a DIB), rows padded
+to 4 bytes. Uncompressed monochrome (8 or 16 bit) and colour (24/48 bit, converted to
+grey) files are read; packed and compressed files raise ``ValueError`` (save them
+from the camera software as 16-bit). pycine is not used: it reads 16-bit files only and
+its package requires ``opencv-python``, which clashes with the project's
+``opencv-contrib-python-headless``. The layout follows Vision Research's file format
+description.
+"""
+
+from __future__ import annotations
+
+import shutil
+import struct
+import tempfile
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+LAB_SUFFIXES = {".cih", ".cihx", ".mraw", ".cine"}
+
+# CINE layout (byte offsets, little-endian).
+_CINE_HEADER = struct.Struct("<2sHHHiIiIIII8s")  # CINEFILEHEADER, 44 bytes
+_BITMAP_HEADER = struct.Struct("<IiiHHIIiiII")  # BITMAPINFOHEADER, 40 bytes
+_SETUP_FRAMERATE16 = 0  # WORD: frame rate, older files
+_SETUP_LENGTH = 142  # WORD: size of the SETUP block in this file
+_SETUP_FRAMERATE = 768  # UINT: frame rate, fps
+_SETUP_REALBPP = 896  # UINT: significant bits per pixel (8..16)
+
+
+@dataclass
+class LabVideo:
+    """A high-speed recording opened by :func:`open_lab_video` (frames not yet read).
+
+    ``shape`` is (height, width) in pixels; ``fps`` in frames per second (``None`` when
+    the header has none); ``bit_depth`` the significant bits per pixel.
+    """
+
+    path: Path
+    count: int
+    shape: tuple[int, int]
+    bit_depth: int
+    fps: float | None
+    format: str
+    header: dict = field(default_factory=dict, repr=False)
+    _frame: object = field(default=None, repr=False)
+
+    def read(self, indices: Iterable[int] | None = None) -> Iterator[np.ndarray]:
+        """Yield the frames at ``indices`` (all when ``None``) as 2D arrays (H, W)."""
+        idx = range(self.count) if indices is None else indices
+        for i in idx:
+            i = int(i)
+            if not 0 <= i < self.count:
+                raise ValueError(f"{self.path}: frame {i} out of range (0..{self.count - 1})")
+            yield self._frame(i)
+
+
+def open_lab_video(path: str | Path) -> LabVideo:
+    """Open a Photron (``.cih``, ``.cihx``, ``.mraw``) or Phantom (``.cine``) recording.
+
+    Raises FileNotFoundError when the file (or the MRAW's header/data partner) is
+    missing and ValueError, naming the file, when it is not a readable recording.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in LAB_SUFFIXES:
+        raise ValueError(f"{path}: not a lab format ({', '.join(sorted(LAB_SUFFIXES))})")
+    if suffix == ".cine":
+        return _open_cine(path)
+    return _open_mraw(path)
+
+
+def lab_frame_rate(path: str | Path) -> float | None:
+    """The frame rate (fps) written in a lab recording's header, or ``None``."""
+    return open_lab_video(path).fps
+
+
+# --- Photron MRAW -----------------------------------------------------------------------
+
+
+def _mraw_pair(path: Path) -> tuple[Path, Path]:
+    """(header, data) paths of a Photron recording given any one of them."""
+    if path.suffix.lower() == ".mraw":
+        for sfx in (".cihx", ".cih", ".CIHX", ".CIH"):
+            head = path.with_suffix(sfx)
+            if head.is_file():
+                return head, path
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: file not found")
+        raise FileNotFoundError(f"{path}: no .cih or .cihx header beside it")
+    data = path.with_suffix(".mraw")
+    if not data.is_file() and path.with_suffix(".MRAW").is_file():
+        data = path.with_suffix(".MRAW")
+    return path, data
+
+
+def _read_cih(head: Path) -> dict:
+    import pyMRAW  # imported here: it compiles its 12-bit unpacker (numba) on import
+
+    try:
+        if head.suffix in (".cih", ".cihx"):
+            return pyMRAW.get_cih(str(head))
+        # pyMRAW dispatches on the exact, lower-case suffix: read an upper-case one via a copy.
+        with tempfile.TemporaryDirectory() as tmp:
+            copy = Path(tmp) / ("header" + head.suffix.lower())
+            shutil.copyfile(head, copy)
+            return pyMRAW.get_cih(str(copy))
+    except Exception as e:  # a malformed header fails in many ways (KeyError, ExpatError...)
+        raise ValueError(f"{head}: not a readable Photron header ({e!r})") from e
+
+
+def _open_mraw(path: Path) -> LabVideo:
+    head, data = _mraw_pair(path)
+    for p in (head, data):
+        if not p.is_file():
+            raise FileNotFoundError(
+                f"{p}: file not found (Photron recordings need .cih/.cihx and .mraw)"
+            )
+    cih = _read_cih(head)
+
+    def need(key):
+        if key not in cih:
+            raise ValueError(f"{head}: Photron header has no '{key}'")
+        return cih[key]
+
+    count = int(need("Total Frame"))
+    h, w = int(need("Image Height")), int(need("Image Width"))
+    bits = int(need("Color Bit"))
+    fmt = str(cih.get("File Format", "MRaw")).lower()
+    if fmt != "mraw":
+        raise ValueError(f"{head}: file format '{fmt}' is not MRAW")
+    if bits not in (8, 12, 16):
+        raise ValueError(f"{head}: {bits}-bit MRAW is not supported (8, 12 or 16)")
+    effective = int(cih.get("EffectiveBit Depth", bits) or bits)
+    effective = min(effective, bits)
+    side = str(cih.get("EffectiveBit Side", "Lower")).lower()
+    frame_bytes = h * w * bits // 8
+    size = data.stat().st_size
+    if count < 1 or h < 1 or w < 1:
+        raise ValueError(f"{head}: empty recording ({count} frames of {w}x{h})")
+    if size < count * frame_bytes:
+        raise ValueError(
+            f"{data}: {size} bytes, but {head.name} announces {count} frames of {w}x{h} "
+            f"at {bits} bit ({count * frame_bytes} bytes)"
+        )
+    # 16-bit words with the significant bits at the top are shifted down.
+    shift = 16 - effective if bits == 16 and side == "higher" else 0
+    if bits == 8:
+        raw = np.memmap(data, dtype=np.uint8, mode="r", shape=(count, h, w))
+    elif bits == 16:
+        raw = np.memmap(data, dtype="<u2", mode="r", shape=(count, h, w))
+    else:
+        raw = np.memmap(data, dtype=np.uint8, mode="r", shape=(count, frame_bytes))
+
+    def frame(i: int) -> np.ndarray:
+        if bits == 12:
+            import pyMRAW
+
+            return pyMRAW.nb_read_uint12(np.ascontiguousarray(raw[i])).reshape(h, w)
+        img = np.array(raw[i])
+        if bits == 16:
+            img = img.astype(np.uint16, copy=False)
+            if shift:
+                img >>= shift
+        return img
+
+    fps = cih.get("Record Rate(fps)")
+    return LabVideo(
+        path=head,
+        count=count,
+        shape=(h, w),
+        bit_depth=effective if bits > 8 else 8,
+        fps=float(fps) if fps not in (None, "") else None,
+        format="mraw",
+        header=cih,
+        _frame=frame,
+    )
+
+
+# --- Phantom CINE -----------------------------------------------------------------------
+
+
+def _open_cine(path: Path) -> LabVideo:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: file not found")
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(_CINE_HEADER.size + _BITMAP_HEADER.size)
+        if len(head) < _CINE_HEADER.size + _BITMAP_HEADER.size:
+            raise ValueError(f"{path}: too short for a CINE file")
+        (
+            magic,
+            header_size,
+            compression,
+            _version,
+            _first_movie_image,
+            _total_count,
+            first_image_no,
+            count,
+            off_bitmap,
+            off_setup,
+            off_offsets,
+            _trigger,
+        ) = _CINE_HEADER.unpack_from(head, 0)
+        if magic != b"CI":
+            raise ValueError(f"{path}: not a CINE file (starts with {magic!r}, not b'CI')")
+        f.seek(off_bitmap)
+        bmp = f.read(_BITMAP_HEADER.size)
+        if len(bmp) < _BITMAP_HEADER.size:
+            raise ValueError(f"{path}: truncated BITMAPINFOHEADER")
+        (_bi_size, width, height, _planes, bit_count, bi_compression, bi_size_image, *_rest) = (
+            _BITMAP_HEADER.unpack(bmp)
+        )
+        f.seek(off_setup)
+        setup = f.read(_SETUP_REALBPP + 4)
+        setup_len = struct.unpack_from("<H", setup, _SETUP_LENGTH)[0] if len(setup) > 144 else 0
+        setup_len = min(setup_len or len(setup), len(setup))
+
+        def setup_uint(offset: int, fmt: str) -> int | None:
+            n = struct.calcsize(fmt)
+            if offset + n > setup_len:
+                return None
+            return struct.unpack_from("<" + fmt, setup, offset)[0]
+
+        f.seek(off_offsets)
+        table = f.read(8 * count)
+        if len(table) < 8 * count:
+            raise ValueError(f"{path}: truncated image offset table ({count} images announced)")
+        offsets = np.frombuffer(table, dtype="<i8").copy()
+
+    if compression not in (0, 2) or bi_compression != 0:
+        raise ValueError(
+            f"{path}: compressed or packed CINE (compression {compression}, "
+            f"biCompression {bi_compression}) is not supported; save it as 16-bit"
+        )
+    if bit_count not in (8, 16, 24, 48):
+        raise ValueError(f"{path}: {bit_count} bits per pixel is not supported (8, 16, 24, 48)")
+    if count < 1 or width < 1 or height == 0:
+        raise ValueError(f"{path}: empty recording ({count} images of {width}x{height})")
+    channels = 3 if bit_count in (24, 48) else 1
+    itemsize = 2 if bit_count in (16, 48) else 1
+    h, w = abs(height), width
+    stride = (w * channels * itemsize + 3) // 4 * 4  # DIB rows are padded to 4 bytes
+    real_bpp = setup_uint(_SETUP_REALBPP, "I")
+    bit_depth = 8 * itemsize
+    if itemsize == 2 and real_bpp and 8 < real_bpp <= 16:
+        bit_depth = int(real_bpp)
+    fps = setup_uint(_SETUP_FRAMERATE, "I") or setup_uint(_SETUP_FRAMERATE16, "H")
+    mm = np.memmap(path, dtype=np.uint8, mode="r")
+    dtype = np.dtype("<u2") if itemsize == 2 else np.dtype(np.uint8)
+    bottom_up = height > 0
+
+    def frame(i: int) -> np.ndarray:
+        off = int(offsets[i])
+        if off < 0 or off + 8 > size:
+            raise ValueError(f"{path}: image {i} offset {off} outside the file")
+        annotation = int(mm[off : off + 4].view("<u4")[0])
+        if annotation < 8:
+            raise ValueError(f"{path}: image {i} has a bad annotation size {annotation}")
+        n_bytes = int(mm[off + annotation - 4 : off + annotation].view("<u4")[0])
+        start = off + annotation
+        if n_bytes < stride * h or start + stride * h > size:
+            raise ValueError(f"{path}: image {i} truncated ({n_bytes} bytes, need {stride * h})")
+        rows = np.asarray(mm[start : start + stride * h]).reshape(h, stride)
+        img = rows[:, : w * channels * itemsize].copy().view(dtype).reshape(h, w, channels)
+        if bottom_up:
+            img = img[::-1]
+        if channels == 3:  # BGR -> grey (ITU-R 601 luma), kept in the input's range
+            grey = img[..., 2] * 0.299 + img[..., 1] * 0.587 + img[..., 0] * 0.114
+            return np.ascontiguousarray(np.rint(grey).astype(img.dtype))
+        return np.ascontiguousarray(img[..., 0]).astype(
+            np.uint16 if itemsize == 2 else np.uint8, copy=False
+        )
+
+    return LabVideo(
+        path=path,
+        count=int(count),
+        shape=(h, w),
+        bit_depth=bit_depth,
+        fps=float(fps) if fps else None,
+        format="cine",
+        header={
+            "first_image_no": first_image_no,
+            "bit_count": bit_count,
+            "real_bpp": real_bpp,
+            "bi_size_image": bi_size_image,
+            "header_size": header_size,
+        },
+        _frame=frame,
+    )

@@ -1,0 +1,431 @@
+"""Classical bubble segmenter for shadowgraph-style frames (the embedded default).
+
+In a shadowgraph a bubble is a dark ring (light refracted away from the lens), often
+with a bright core, on a bright and slowly varying background. Per frame:
+
+1. background: a grey closing larger than any bubble removes the dark objects, a
+   Gaussian blur smooths what remains;
+2. contrast ``c = (background − image) / background`` (0 on the background, towards
+   1 in a black shadow), thresholded with hysteresis;
+3. holes filled (the bright core), specks removed by an opening;
+4. touching bubbles split by a watershed on the distance transform; two pieces are
+   merged back when the neck between them is nearly as wide as the smaller piece
+   (a wobbly bubble, not two);
+5. instances smaller than the minimum area dropped.
+
+All sizes are given as fractions of the image's shorter side (or area), so the same
+parameters work at 128×128 and 512×512.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+
+import cv2
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.feature import peak_local_max
+from skimage.filters import apply_hysteresis_threshold
+from skimage.segmentation import watershed
+
+#: Parameters of :func:`segment_frame` (mirrored in config.yaml under ``masks.classical``).
+CLASSICAL_DEFAULTS: dict = {
+    # "dark": bubbles darker than the background (shadowgraph); "bright": the opposite.
+    "polarity": "dark",
+    # Total degree of the robust polynomial background fit.
+    "background_degree": 4,
+    # Session reference: this per-pixel percentile over (at most max) frames.
+    "reference_percentile": 90.0,
+    "reference_max_frames": 64,
+    # Static dark structure (the heated plate): darker than the fitted background by
+    # this fraction in the reference, touching the border, at least this area fraction.
+    "static_dark_frac": 0.35,
+    "static_min_area_frac": 0.01,
+    # Running-median window along the plate edge, fraction of the image width
+    # (more than twice the widest bubble sitting on the plate).
+    "static_notch_frac": 0.35,
+    # On the plate, a reference pixel this far (fraction) from the along-edge median
+    # is a bubble persisting at a nucleation site, not the plate.
+    "static_outlier_frac": 0.4,
+    # Edge of a bubble in front of the static structure, relative contrast.
+    "static_edge": 0.25,
+    # Where the background itself is darker than this (black plate sides), nothing is seen.
+    "background_floor": 0.08,
+    # Gaussian smoothing before detection (not for the edge), pixels.
+    "smooth_px": 0.7,
+    # Hysteresis thresholds on the relative contrast (background − image) / background.
+    "threshold_low": 0.08,
+    "threshold_high": 0.2,
+    # Edge of each object at this fraction of its own peak contrast (half maximum).
+    "edge_frac": 0.5,
+    # Peaks of the distance transform closer than this (fraction of shorter side) merge.
+    "split_min_distance_frac": 0.012,
+    # Two touching pieces stay one bubble when neck width / smaller width exceeds this.
+    "split_neck_ratio": 0.7,
+    # Minimum instance area, fraction of the image area (and never below 6 pixels).
+    "min_area_frac": 2.0e-4,
+}
+
+
+def to_unit_float(frame: np.ndarray) -> np.ndarray:
+    """A frame (H, W) or (H, W, C) of uint8/uint16/float → float32 grey image in [0, 1].
+
+    Integer frames are divided by their dtype's maximum; float frames are clipped.
+    Colour frames are averaged over channels.
+    """
+    a = np.asarray(frame)
+    if np.issubdtype(a.dtype, np.integer):
+        out = a.astype(np.float32) / float(np.iinfo(a.dtype).max)
+    else:
+        out = np.clip(a.astype(np.float32), 0.0, 1.0)
+    if out.ndim == 3:
+        out = out.mean(axis=2)
+    if out.ndim != 2:
+        raise ValueError(f"expected a (H, W) or (H, W, C) frame, got shape {a.shape}")
+    return out
+
+
+def _poly_design(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
+    """Columns x^i y^j (i + j ≤ degree) of normalised coordinates in [−1, 1]."""
+    cols = [x**i * y**j for i in range(degree + 1) for j in range(degree + 1 - i)]
+    return np.stack(cols, axis=-1)
+
+
+def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 6) -> np.ndarray:
+    """Smooth background of a (H, W) float image whose objects are darker than it.
+
+    A 2D polynomial of total ``degree`` in the normalised pixel coordinates is fitted
+    by least squares to a ≤64×64 area-downsampled copy, starting from the pixels
+    brighter than 0.6 × the 95th percentile; pixels more than 2.5 robust
+    standard deviations *below* the fit (the bubbles) are excluded and the fit is
+    repeated. Uneven illumination and vignetting are smooth, so a low degree follows
+    them without bending into the bubbles. Returns (H, W) float32.
+    """
+    h, w = image.shape
+    f = min(1.0, 64.0 / max(h, w))
+    small = cv2.resize(image.astype(np.float32), (max(2, round(w * f)), max(2, round(h * f))),
+                       interpolation=cv2.INTER_AREA)
+    sh, sw = small.shape
+    ys, xs = np.mgrid[0:sh, 0:sw]
+    A = _poly_design((xs.ravel() + 0.5) / sw * 2 - 1, (ys.ravel() + 0.5) / sh * 2 - 1, degree)
+    b = small.ravel().astype(np.float64)
+    # Start from the pixels not far below the bright level: large dark structures
+    # (the plate) would otherwise pull the first fit down towards them.
+    keep = b > 0.6 * np.percentile(b, 95)
+    if keep.sum() < A.shape[1] * 3:
+        keep = np.ones(b.size, bool)
+    coef = np.zeros(A.shape[1])
+    for _ in range(iterations):
+        # Normal equations: a 15-column system, far cheaper than an SVD of A.
+        Ak = A[keep]
+        coef = np.linalg.solve(Ak.T @ Ak + 1e-9 * np.eye(A.shape[1]), Ak.T @ b[keep])
+        r = b - A @ coef
+        sigma = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep]))) + 1e-6
+        new_keep = r > -2.5 * sigma
+        if new_keep.sum() < A.shape[1] * 3 or np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    # Evaluate at full resolution separably: the design is a sum of x^i y^j products.
+    xf = ((np.arange(w) + 0.5) / w * 2 - 1).astype(np.float64)
+    yf = ((np.arange(h) + 0.5) / h * 2 - 1).astype(np.float64)
+    bg = np.zeros((h, w))
+    k = 0
+    for i in range(degree + 1):
+        for j in range(degree + 1 - i):
+            bg += coef[k] * np.outer(yf**j, xf**i)
+            k += 1
+    return bg.astype(np.float32)
+
+
+def session_reference(frames: np.ndarray, percentile: float = 90.0, max_frames: int = 64
+                      ) -> np.ndarray:
+    """(H, W) float32 reference image of a (T, H, W) frame stack: what stays put.
+
+    The per-pixel ``percentile`` over at most ``max_frames`` evenly spaced frames:
+    moving (dark) bubbles fall below it, the bright backlight and static structures
+    such as the heated plate remain.
+    """
+    n = frames.shape[0]
+    if n == 0:
+        raise ValueError("empty frame stack")
+    idx = np.unique(np.linspace(0, n - 1, min(n, int(max_frames))).round().astype(int))
+    stack = np.stack([to_unit_float(frames[i]) for i in idx])
+    return np.percentile(stack, percentile, axis=0).astype(np.float32)
+
+
+def static_background(reference: np.ndarray, params: Mapping | None = None
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Background model of a session from its :func:`session_reference`.
+
+    The backlight is the robust polynomial fit of the reference. A static dark
+    structure entering from the bottom of the view — the heated plate — is the part
+    of the reference darker than ``(1 − static_dark_frac)`` × backlight, connected to
+    the border and larger than ``static_min_area_frac`` of the image. Its upper edge
+    is taken per column and cleaned by a running median over ``static_notch_frac``
+    of the width (bubbles sitting on the plate, which stay in the reference when
+    nucleation never stops, dent it).
+    Inside the structure (and two rows above its edge, its blurred rim) the
+    background is the reference itself, except where the reference departs from its
+    running median *along* the edge by more than ``static_outlier_frac``: there a
+    bubble sat at a nucleation site all along, and the median replaces it.
+
+    Returns ``background`` (H, W) float32 (polarity applied) and ``static`` (H, W) bool.
+    """
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    ref = _polarised(reference, p)
+    h, w = ref.shape
+    light = estimate_background(ref, int(p["background_degree"]))
+    static = np.zeros((h, w), bool)
+    dark = ref < (1.0 - p["static_dark_frac"]) * light
+    comp, n = ndi.label(dark)
+    if n == 0:
+        return light, static
+    bottom = np.unique(comp[-1])
+    sizes = ndi.sum_labels(np.ones_like(comp), comp, np.arange(1, n + 1))
+    big = np.flatnonzero(sizes >= p["static_min_area_frac"] * comp.size) + 1
+    keep = np.intersect1d(big, bottom[bottom > 0])
+    if keep.size == 0:
+        return light, static
+    s0 = np.isin(comp, keep)
+    has = s0.any(axis=0)
+    edge = np.where(has, np.argmax(s0, axis=0), h).astype(np.float64)
+    win = max(3, (w // 6) | 1)
+    # Bubbles on the plate dent its edge over at most their width, upwards (a dark
+    # ring above the plate) or downwards (a bright core hiding its top rows): a
+    # running median wider than twice the widest bubble removes both.
+    notch = max(3, int(p["static_notch_frac"] * w) | 1)
+    smooth = np.round(ndi.median_filter(edge, size=notch, mode="nearest"))
+    # Keep the raw edge where it is close above the smoothed one (a corner of the
+    # plate, slightly cut); bubbles on the plate dent it further.
+    edge = np.where((smooth - edge >= 0) & (smooth - edge <= 3), edge, smooth).astype(int)
+    # Two rows above the edge too: the blurred rim of the structure.
+    edge = np.maximum(edge - 2, 0)
+    static = np.arange(h)[:, None] >= edge[None, :]
+    # Unroll the structure along its edge: band[r, u] = ref[edge(u) + r, u].
+    depth = h - int(edge.min())
+    vv = edge[None, :] + np.arange(depth)[:, None]
+    valid = vv < h
+    uu = np.broadcast_to(np.arange(w)[None, :], vv.shape)
+    smooth_ref = cv2.GaussianBlur(ref, (0, 0), 0.7)
+    band = np.where(valid, smooth_ref[np.minimum(vv, h - 1), uu], np.nan)
+    padded = np.pad(band, ((0, 0), (win // 2, win // 2)), constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, win, axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(windows, axis=2)
+    med = np.where(np.isfinite(med), med, band)
+    # The reference is the background, except where it departs strongly from its
+    # along-edge median: bubbles that never left the nucleation sites.
+    outlier = np.abs(band - med) > p["static_outlier_frac"] * np.maximum(med, 1e-3)
+    outlier = ndi.binary_dilation(outlier, np.ones((3, 3), bool))
+    band_bg = np.where(outlier, med, band)
+    bg = light.copy()
+    bg[vv[valid], uu[valid]] = band_bg[valid]
+    return bg.astype(np.float32), static
+
+
+def _polarised(image: np.ndarray, p: Mapping) -> np.ndarray:
+    img = to_unit_float(image)
+    if p["polarity"] == "bright":
+        return 1.0 - img
+    if p["polarity"] != "dark":
+        raise ValueError(f"masks.classical.polarity must be dark or bright, not {p['polarity']!r}")
+    return img
+
+
+def relative_contrast(image: np.ndarray, params: Mapping | None = None,
+                      background: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """(H, W) float32 relative darkness ``(background − image) / background`` in [0, 1].
+
+    ``background`` is ``(background, static)`` from :func:`static_background`; without
+    it the backlight is fitted on this frame alone. A per-frame gain (median ratio
+    of image to background off the static structures) follows illumination flicker.
+    With ``polarity: bright`` the image is inverted first (bright bubbles on dark).
+    """
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    img = _polarised(image, p)
+    if background is None:
+        bg = estimate_background(img, int(p["background_degree"]))
+        static = np.zeros(img.shape, bool)
+    else:
+        bg, static = background
+        if bg.shape != img.shape:
+            raise ValueError(f"background is {bg.shape[::-1]} pixels, frame is {img.shape[::-1]}")
+        free = ~static
+        if free.any():
+            bg = bg * float(np.median(img[free] / np.maximum(bg[free], 1e-3)))
+    c = (bg - img) / np.maximum(bg, 1e-3)
+    # In front of a static dark structure a bubble shows as a dark ring *and* a core
+    # brighter than the structure: any departure from the reference counts there.
+    c[static] = np.abs(c[static])
+    c[bg < p["background_floor"]] = 0.0
+    return np.clip(c, 0.0, 1.0).astype(np.float32)
+
+
+def foreground_mask(contrast: np.ndarray, params: Mapping | None = None,
+                    static: np.ndarray | None = None, return_cores: bool = False):
+    """(H, W) bool bubble pixels from the relative contrast.
+
+    Objects are *detected* by hysteresis on the smoothed contrast; each object's
+    *edge* is then placed where the unsmoothed contrast crosses ``edge_frac`` of the
+    object's own peak (95th percentile, off the static structure), which follows the
+    true outline of a blurred shadow whatever its darkness. In front of the static
+    structure (``static``, (H, W) bool), where a bubble's contrast against the dim
+    plate is lower, ``static_edge`` is the edge instead. Holes (bright cores) are
+    filled; with ``return_cores`` the filled holes are returned too, as a second
+    (H, W) bool array: one core per bubble that shows one.
+    """
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    sm = contrast
+    if p["smooth_px"] > 0:
+        sm = cv2.GaussianBlur(contrast, (0, 0), sigmaX=float(p["smooth_px"]))
+    det = apply_hysteresis_threshold(sm, p["threshold_low"], p["threshold_high"])
+    det = ndi.binary_fill_holes(det)
+    comp, n = ndi.label(det)
+    fg = np.zeros_like(det)
+    cores = np.zeros_like(det)
+    grow = np.ones((3, 3), bool)
+    for k, sl in enumerate(ndi.find_objects(comp), start=1):
+        if sl is None:
+            continue
+        # Work in the object's box grown by 2 px, so a refined edge may move outwards.
+        sl = tuple(slice(max(s.start - 2, 0), s.stop + 2) for s in sl)
+        own = comp[sl] == k
+        region = ndi.binary_dilation(own, grow, iterations=2) & ((comp[sl] == 0) | own)
+        c = contrast[sl]
+        st = static[sl] if static is not None else np.zeros(own.shape, bool)
+        free = own & ~st
+        peak = np.percentile(c[free] if free.sum() >= 4 else c[own], 95)
+        edge = ((c >= p["edge_frac"] * peak) | (st & (c >= p["static_edge"]))) & region
+        filled = ndi.binary_fill_holes(edge)
+        fg[sl] |= filled
+        cores[sl] |= filled & ~edge
+    fg = ndi.binary_opening(fg, structure=np.ones((2, 2), bool))
+    return (fg, cores & fg) if return_cores else fg
+
+
+def _neck_widths(labels: np.ndarray, dist: np.ndarray) -> dict[tuple[int, int], float]:
+    """Widest distance-transform value along each shared boundary of two labels (> 0)."""
+    necks: dict[tuple[int, int], float] = {}
+    for a, b, da, db in (
+        (labels[:, :-1], labels[:, 1:], dist[:, :-1], dist[:, 1:]),
+        (labels[:-1, :], labels[1:, :], dist[:-1, :], dist[1:, :]),
+    ):
+        sel = (a != b) & (a > 0) & (b > 0)
+        if not sel.any():
+            continue
+        la, lb = a[sel], b[sel]
+        w = np.minimum(da[sel], db[sel])
+        lo, hi = np.minimum(la, lb), np.maximum(la, lb)
+        for x, y, v in zip(lo.tolist(), hi.tolist(), w.tolist(), strict=True):
+            key = (x, y)
+            if v > necks.get(key, -1.0):
+                necks[key] = v
+    return necks
+
+
+def split_touching(fg: np.ndarray, params: Mapping | None = None,
+                   cores: np.ndarray | None = None) -> np.ndarray:
+    """Split touching bubbles of a (H, W) bool mask → (H, W) int32 labels 1..n, 0 outside.
+
+    Watershed of the negated Euclidean distance transform from its local maxima;
+    adjacent pieces whose neck (largest distance on their shared boundary) is wider
+    than ``split_neck_ratio`` × the smaller piece's peak distance are merged back.
+    A component holding two or more bright ``cores`` (shadowgraph: one per bubble)
+    is instead split by a watershed from those cores, however wide the neck.
+    """
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    comp, n = ndi.label(fg)
+    if n == 0:
+        return comp.astype(np.int32)
+    dist = ndi.distance_transform_edt(fg).astype(np.float32)
+    min_d = max(1, int(round(p["split_min_distance_frac"] * min(fg.shape))))
+    peaks = peak_local_max(dist, min_distance=min_d, labels=comp, exclude_border=False)
+    markers = np.zeros(fg.shape, np.int32)
+    markers[tuple(peaks.T)] = np.arange(1, len(peaks) + 1)
+    # Components without a peak (flat plateaus) still need a seed.
+    seeded = np.zeros(n + 1, bool)
+    seeded[comp[markers > 0]] = True
+    nxt = len(peaks) + 1
+    for k in np.flatnonzero(~seeded[1:]) + 1:
+        idx = np.unravel_index(np.argmax(np.where(comp == k, dist, -1)), fg.shape)
+        markers[idx] = nxt
+        nxt += 1
+    ws = watershed(-dist, markers, mask=fg).astype(np.int32)
+    nlab = int(ws.max())
+    peak = ndi.maximum(dist, ws, index=np.arange(1, nlab + 1))
+    parent = np.arange(nlab + 1)
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    necks = _neck_widths(ws, dist)
+    # Merge the widest necks first so chains of wobbly pieces collapse together.
+    for (a, b), w in sorted(necks.items(), key=lambda kv: -kv[1]):
+        if w > p["split_neck_ratio"] * min(peak[a - 1], peak[b - 1]):
+            ra, rb = find(a), find(b)
+            if ra != rb:
+                parent[max(ra, rb)] = min(ra, rb)
+    roots = np.array([find(i) for i in range(nlab + 1)])
+    _, relabel = np.unique(roots, return_inverse=True)
+    out = relabel[ws].astype(np.int32)
+    if cores is not None and cores.any():
+        core_lab, n_core = ndi.label(cores & fg)
+        sizes = ndi.sum_labels(np.ones_like(core_lab), core_lab, np.arange(1, n_core + 1))
+        core_lab[np.isin(core_lab, np.flatnonzero(sizes < 2) + 1)] = 0
+        per_comp = ndi.labeled_comprehension(core_lab, comp, np.arange(1, n + 1),
+                                             lambda v: len(np.unique(v[v > 0])), int, 0)
+        nxt = int(out.max()) + 1
+        for k in np.flatnonzero(per_comp >= 2) + 1:
+            m = comp == k
+            ws_k = watershed(-dist, np.where(m, core_lab, 0), mask=m)
+            for j in np.unique(ws_k[m]):
+                out[m & (ws_k == j)] = nxt
+                nxt += 1
+        _, inv = np.unique(out, return_inverse=True)
+        out = inv.reshape(out.shape).astype(np.int32)
+    return out
+
+
+def segment_frame(
+    image: np.ndarray,
+    params: Mapping | None = None,
+    background: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Segment the bubbles of one frame.
+
+    Args:
+        image: (H, W) frame, float in [0, 1] or integer.
+        params: overrides of :data:`CLASSICAL_DEFAULTS`.
+        background: ``(background, static)`` of the session
+            (:func:`static_background`); fitted on the frame alone when ``None``.
+
+    Returns:
+        labels: (H, W) int32, −1 background, 0..n−1 instance index (largest first);
+        scores: (n,) float32 confidence, the mean relative contrast inside each instance.
+    """
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    contrast = relative_contrast(image, p, background)
+    fg, cores = foreground_mask(contrast, p, None if background is None else background[1],
+                                return_cores=True)
+    if background is not None:
+        # In front of the plate a bubble's core is not a clean hole in its ring.
+        cores &= ~background[1]
+    lab = split_touching(fg, p, cores)
+    n = int(lab.max())
+    if n == 0:
+        return np.full(lab.shape, -1, np.int32), np.zeros(0, np.float32)
+    idx = np.arange(1, n + 1)
+    area = ndi.sum_labels(np.ones_like(lab), lab, idx)
+    min_area = max(6.0, p["min_area_frac"] * lab.size)
+    keep = idx[area >= min_area]
+    keep = keep[np.argsort(-area[keep - 1], kind="stable")]
+    lut = np.full(n + 1, -1, np.int32)
+    lut[keep] = np.arange(len(keep), dtype=np.int32)
+    labels = lut[lab]
+    scores = ndi.mean(contrast, lab, keep).astype(np.float32) if len(keep) else np.zeros(0)
+    return labels, np.asarray(scores, np.float32)

@@ -1,0 +1,204 @@
+"""The ``mask`` stage of one session: segment every frame, associate, write outputs.
+
+Input (the output of ``ingest``), a folder ``INGEST`` with:
+
+* ``<cam>.npy`` — frames × H × W stack (float32 in [0, 1] or uint8/uint16);
+* ``cameras.json`` — the cameras of those undistorted frames;
+* ``meta.json`` — ``session``, ``fps``, ``frames``, ``cameras`` (camera order).
+
+Outputs in ``OUT``:
+
+* ``<cam>_labels.npy`` — int32 frames × H × W, −1 background, 0 the nucleation
+  region at the heated plate, ≥ 1 a bubble id shared by all views and frames;
+* ``instances.csv`` — ``frame, camera, bubble, area, cx, cy, x0, y0, x1, y1, score``
+  (pixels; ``score`` is the backend's confidence);
+* ``events.csv`` — ``frame, camera, event, parents, children`` (merge, split, detach);
+* ``overlays/frame_XXXXX.png`` — a few frames, views side by side;
+* ``masks.json`` — session, backend, parameters used, counts.
+
+Every file is written under a temporary name and renamed, and the outputs are only
+moved into ``OUT`` once all of them are complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from surfphase.cameras import load_cameras
+from surfphase.io import atomic_write_json, atomic_write_text, load_stack, save_npy
+from surfphase.masks import classical
+from surfphase.masks.associate import ASSOCIATE_DEFAULTS, associate
+from surfphase.masks.overlay import overlay_frame, save_png
+from surfphase.masks.sam_onnx import SAM_DEFAULTS, load_sam
+
+#: Parameters of the stage (config.yaml ``masks:``); nested sections are merged key by key.
+DEFAULTS: dict = {
+    # classical (embedded, default) or sam (ONNX models from masks.sam.encoder/decoder).
+    "backend": "classical",
+    "classical": dict(classical.CLASSICAL_DEFAULTS),
+    "sam": dict(SAM_DEFAULTS),
+    "associate": dict(ASSOCIATE_DEFAULTS),
+    # Number of overlay pictures (evenly spaced frames).
+    "overlay_frames": 4,
+}
+
+
+def merge_params(params: Mapping | None) -> dict:
+    """:data:`DEFAULTS` updated by ``params`` (one level deep for the nested sections).
+
+    Unknown keys are an error, so a typo in config.yaml does not go unnoticed.
+    """
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in DEFAULTS.items()}
+    for k, v in (params or {}).items():
+        if k not in out:
+            raise ValueError(f"unknown masks parameter {k!r} (known: {sorted(out)})")
+        if isinstance(out[k], dict):
+            if not isinstance(v, Mapping):
+                raise ValueError(f"masks.{k} must be a mapping, not {v!r}")
+            for kk in v:
+                if kk not in out[k]:
+                    raise ValueError(f"unknown parameter masks.{k}.{kk} (known: {sorted(out[k])})")
+            out[k].update(v)
+        else:
+            out[k] = v
+    if out["backend"] not in ("classical", "sam"):
+        raise ValueError(f"masks.backend must be classical or sam, not {out['backend']!r}")
+    return out
+
+
+def read_ingest(ingest_dir: Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
+    """Read ``meta.json``, ``cameras.json`` and the frame stacks of an ingest folder.
+
+    Returns ``(meta, cameras, stacks)``; stacks are memory-mapped (T, H, W) arrays in
+    the order of ``meta["cameras"]``. Raises FileNotFoundError / ValueError naming the
+    file (and session) when something is missing or inconsistent.
+    """
+    ingest_dir = Path(ingest_dir)
+    meta_path = ingest_dir / "meta.json"
+    if not meta_path.is_file():
+        raise FileNotFoundError(f"{meta_path}: ingest metadata not found (run ingest first)")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except ValueError as e:
+        raise ValueError(f"{meta_path}: not valid JSON ({e})") from e
+    session = meta.get("session", ingest_dir.name)
+    cam_path = ingest_dir / "cameras.json"
+    if not cam_path.is_file():
+        raise FileNotFoundError(f"{cam_path}: cameras of session {session} not found")
+    cameras = load_cameras(cam_path)
+    names = list(meta.get("cameras") or [])
+    if not names:
+        names = [n for n in cameras if (ingest_dir / f"{n}.npy").is_file()]
+    if not names:
+        raise ValueError(f"{ingest_dir}: session {session} lists no cameras")
+    stacks: dict[str, np.ndarray] = {}
+    n_frames = None
+    for name in names:
+        path = ingest_dir / f"{name}.npy"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: frame stack of camera {name} (session {session}) not found")
+        try:
+            st = load_stack(path)
+        except ValueError as e:
+            raise ValueError(f"{path}: not a readable .npy frame stack ({e})") from e
+        if st.ndim == 4 and st.shape[-1] in (1, 3):
+            pass
+        elif st.ndim != 3:
+            raise ValueError(f"{path}: expected frames × H × W, got shape {st.shape} (session {session})")
+        if name not in cameras:
+            raise ValueError(f"{cam_path}: no camera {name!r} (session {session})")
+        cam = cameras[name]
+        if st.shape[1:3] != (cam.height, cam.width):
+            raise ValueError(
+                f"{path}: frames are {st.shape[2]}×{st.shape[1]} pixels but {cam_path} says "
+                f"{name} is {cam.width}×{cam.height} (session {session})"
+            )
+        if n_frames is not None and st.shape[0] != n_frames:
+            raise ValueError(f"{path}: {st.shape[0]} frames, other cameras have {n_frames} "
+                             f"(session {session})")
+        n_frames = st.shape[0]
+        if not (np.issubdtype(st.dtype, np.integer) or np.issubdtype(st.dtype, np.floating)):
+            raise ValueError(f"{path}: unsupported dtype {st.dtype} (session {session})")
+        stacks[name] = st
+    return meta, cameras, stacks
+
+
+def segment_stack(stack: np.ndarray, params: Mapping, backend=None) -> tuple[np.ndarray, list]:
+    """Segment every frame of a (T, H, W) stack → ((T, H, W) int32 labels, [scores])."""
+    t_n, h, w = stack.shape[:3]
+    labels = np.full((t_n, h, w), -1, np.int32)
+    scores = []
+    if params["backend"] == "classical":
+        cp = params["classical"]
+        ref = classical.session_reference(stack, cp["reference_percentile"],
+                                          cp["reference_max_frames"])
+        bg = classical.static_background(ref, cp)
+        for t in range(t_n):
+            labels[t], s = classical.segment_frame(stack[t], cp, bg)
+            scores.append(s)
+    else:
+        for t in range(t_n):
+            labels[t], s = backend.generate(classical.to_unit_float(stack[t]), params["sam"])
+            scores.append(s)
+    return labels, scores
+
+
+def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = None) -> None:
+    """Run the mask stage of one session (see the module docstring for the files).
+
+    Args:
+        ingest_dir: the session's ingest folder.
+        out_dir: output folder (created; existing outputs are replaced).
+        params: the ``masks`` section of the config (defaults: :data:`DEFAULTS`).
+    """
+    ingest_dir, out_dir = Path(ingest_dir), Path(out_dir)
+    p = merge_params(params)
+    meta, cameras, stacks = read_ingest(ingest_dir)
+    backend = load_sam(p["sam"]) if p["backend"] == "sam" else None
+    t0 = time.perf_counter()
+    labels, scores = {}, {}
+    for name, st in stacks.items():
+        labels[name], scores[name] = segment_stack(st, p, backend)
+    t_seg = time.perf_counter() - t0
+    bubble_labels, instances, events = associate(labels, scores, cameras, p["associate"])
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        for name, lab in bubble_labels.items():
+            save_npy(tmp / f"{name}_labels.npy", lab)
+        atomic_write_text(tmp / "instances.csv", instances.to_csv(index=False, float_format="%.3f"))
+        atomic_write_text(tmp / "events.csv", events.to_csv(index=False))
+        n_frames = next(iter(stacks.values())).shape[0]
+        k = max(0, min(int(p["overlay_frames"]), n_frames))
+        for t in np.unique(np.linspace(0, n_frames - 1, k).round().astype(int)) if k else []:
+            pics = [overlay_frame(classical.to_unit_float(stacks[c][t]), bubble_labels[c][t])
+                    for c in stacks]
+            hmax = max(pc.shape[0] for pc in pics)
+            pics = [np.pad(pc, ((0, hmax - pc.shape[0]), (0, 4), (0, 0))) for pc in pics]
+            save_png(tmp / "overlays" / f"frame_{int(t):05d}.png", np.concatenate(pics, axis=1))
+        atomic_write_json(tmp / "masks.json", {
+            "session": meta.get("session", ingest_dir.name),
+            "backend": p["backend"],
+            "params": p,
+            "cameras": list(stacks),
+            "frames": n_frames,
+            "instances": len(instances),
+            "bubbles": int(instances.loc[instances.bubble > 0, "bubble"].nunique()),
+            "events": len(events),
+            "segment_seconds": round(t_seg, 3),
+        })
+        out_dir.mkdir(parents=True, exist_ok=True)
+        if (out_dir / "overlays").exists():
+            shutil.rmtree(out_dir / "overlays")
+        for f in sorted(tmp.iterdir()):
+            os.replace(f, out_dir / f.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

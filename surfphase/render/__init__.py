@@ -1,0 +1,8 @@
+"""Differentiable 2D Gaussian surfel renderer: surfels and cameras in, images out.
+
+The renderer knows nothing of bubbles, SDF values or fits (DESIGN.md).
+"""
+
+from surfphase.render.rasterize import camera_tensors, depth_normals, rasterize_surfels
+
+__all__ = ["camera_tensors", "depth_normals", "rasterize_surfels"]

@@ -1,0 +1,182 @@
+"""Calibration of the synthetic rig against its true cameras; outputs; bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from surfphase.calib import calibrate_rig, calibrate_rig_detailed, load_board
+from surfphase.calib.solve import _mat_to_rt, _Problem
+from surfphase.cameras import load_cameras
+from surfphase.cli import main
+from surfphase.synth.charuco import board_yaml_dict, write_calibration_images
+from surfphase.synth.rig import SCENE_CENTER, default_rig
+
+N_POSES = 24
+
+
+@pytest.fixture(scope="module")
+def rig_images(tmp_path_factory):
+    root = tmp_path_factory.mktemp("calib")
+    write_calibration_images(default_rig(), root / "images", seed=0, n_poses=N_POSES)
+    board = root / "board.yaml"
+    board.write_text(yaml.safe_dump(board_yaml_dict()))
+    return root, board, {n: root / "images" / n for n in ("cam0", "cam1")}
+
+
+@pytest.fixture(scope="module")
+def calibration(rig_images):
+    _, board, dirs = rig_images
+    return calibrate_rig_detailed(board, dirs, rig="rig01")
+
+
+def _angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    c = (np.trace(Ra @ Rb.T) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def test_recovers_true_cameras_in_lab_frame(calibration):
+    true = default_rig()
+    cams, report = calibration.cameras, calibration.report
+    assert list(cams) == ["cam0", "cam1"]
+    for n, cam in cams.items():
+        g = true[n]
+        assert (cam.width, cam.height, cam.role) == (512, 512, "input")
+        f_err = np.abs(np.diag(cam.K)[:2] / np.diag(g.K)[:2] - 1)
+        assert f_err.max() < 0.005, (n, f_err)
+        assert _angle_deg(cam.R, g.R) < 0.2, n
+        assert report["cameras"][n]["rms_px"] < 0.5
+        assert report["cameras"][n]["images_used"] >= 10
+        # The principal point of a 17° field of view trades off against the camera's
+        # rotation; it must agree with the truth within the calibration's own 3-sigma.
+        sd = report["cameras"][n]["sd_px"]
+        pp_err = cam.K[:2, 2] - g.K[:2, 2]
+        assert abs(pp_err[0]) < 3 * sd["cx"] and abs(pp_err[1]) < 3 * sd["cy"], (n, pp_err, sd)
+        assert max(sd["cx"], sd["cy"]) < 4.0
+        # What the principal point and rotation together decide: where scene points land.
+        grid = np.stack(np.meshgrid(*[np.linspace(-0.006, 0.006, 5)] * 3), -1).reshape(-1, 3)
+        X = grid + SCENE_CENTER
+        assert np.abs(cam.project(X) - g.project(X)).max() < 0.5, n
+    baseline = np.linalg.norm(cams["cam1"].center - cams["cam0"].center)
+    true_baseline = np.linalg.norm(true["cam1"].center - true["cam0"].center)
+    assert abs(baseline / true_baseline - 1) < 0.005
+    assert report["baselines_m"]["cam1"] == pytest.approx(baseline)
+    assert report["rms_px"] < 0.5
+
+
+def test_report_lists_images_and_rejections(calibration):
+    rep = calibration.report
+    assert rep["rig"] == "rig01" and rep["reference_image"] == "pose000.png"
+    for info in rep["cameras"].values():
+        assert info["images"] == N_POSES
+        used = set(info["per_image_rms_px"])
+        rejected = {r["image"] for r in info["rejected"]}
+        assert "pose000.png" in used
+        assert used | rejected == {f"pose{k:03d}.png" for k in range(N_POSES)}
+        assert all(r["reason"] for r in info["rejected"])
+
+
+def test_bundle_jacobian_matches_finite_differences(calibration):
+    """The analytic Jacobian (projectPoints + composeRT chain rule) against central
+    differences of the residuals."""
+    dets = calibration.detections
+    images = sorted(set(dets["cam0"]) & set(dets["cam1"]))[:2]
+    views = [(c, i, dets[n][img]) for c, n in enumerate(dets) for i, img in enumerate(images)]
+    cams = calibration.cameras
+    Re = cams["cam1"].R @ cams["cam0"].R.T
+    te = cams["cam1"].t - Re @ cams["cam0"].t
+    rng = np.random.default_rng(0)
+    poses = {img: np.concatenate([rng.normal(0, 0.3, 3), [0.001, -0.002, 0.07]]) for img in images}
+    p = _Problem(2, images, 4)
+    x = p.pack(
+        [c.K for c in cams.values()],
+        [c.dist for c in cams.values()],
+        [None, _mat_to_rt(Re, te)],
+        poses,
+    )
+    _, J = p.residuals(x, views, jacobian=True)
+    num = np.zeros_like(J)
+    for k in range(x.size):
+        h = 1e-6 * max(1.0, abs(x[k]))
+        xp, xm = x.copy(), x.copy()
+        xp[k] += h
+        xm[k] -= h
+        num[:, k] = (p.residuals(xp, views)[0] - p.residuals(xm, views)[0]) / (2 * h)
+    scale = np.abs(num).max(axis=0) + 1e-9
+    assert np.max(np.abs(J - num) / scale) < 1e-4
+
+
+def test_cli_writes_cameras_report_and_picture(rig_images, tmp_path):
+    _, board, dirs = rig_images
+    out = tmp_path / "out"
+    args = ["calibrate", "--rig", "rig01", "--board", str(board), "--out", str(out)]
+    args += ["--cam", f"cam0={dirs['cam0']}", "--cam", f"cam1={dirs['cam1']}"]
+    assert main(args) == 0
+    cams = load_cameras(out / "cameras.json")
+    assert list(cams) == ["cam0", "cam1"]
+    assert cams["cam0"].dist.size == 5 and np.any(cams["cam0"].dist != 0)
+    assert cams["cam1"].role == "input"
+    assert json.loads((out / "cameras.json").read_text())["units"] == "m"
+    report = json.loads((out / "report.json").read_text())
+    assert report["cameras"]["cam1"]["rms_px"] < 0.5
+    pic = cv2.imread(str(out / "corners.png"))
+    assert pic is not None and pic.shape[0] == 512 and pic.shape[1] >= 1024
+
+
+def test_board_found_in_too_few_images(rig_images, calibration, tmp_path):
+    _, board, dirs = rig_images
+    cam1 = tmp_path / "cam1"
+    cam1.mkdir()
+    found = sorted(calibration.report["cameras"]["cam1"]["per_image_rms_px"])[:3]
+    for name in found:
+        shutil.copy(dirs["cam1"] / name, cam1 / name)
+    blank = np.full((512, 512), 128, np.uint8)
+    for k in range(9):
+        cv2.imwrite(str(cam1 / f"zz{k:03d}.png"), blank)
+    with pytest.raises(ValueError) as e:
+        calibrate_rig(board, {"cam0": dirs["cam0"], "cam1": cam1}, min_images=6, rig="rig01")
+    assert str(e.value) == f"rig rig01: board found in only 3 of 12 images of {cam1} (need 6)"
+    # The CLI reports it as a user error.
+    args = ["calibrate", "--rig", "rig01", "--board", str(board), "--out", str(tmp_path / "o")]
+    args += ["--cam", f"cam0={dirs['cam0']}", "--cam", f"cam1={cam1}"]
+    assert main(args) == 2
+    assert not (tmp_path / "o" / "cameras.json").exists()
+
+
+def test_missing_folder_and_bad_board(rig_images, tmp_path):
+    _, board, dirs = rig_images
+    gone = tmp_path / "nope"
+    with pytest.raises(FileNotFoundError, match=f"rig rig02: .*{gone}"):
+        calibrate_rig(board, {"cam0": dirs["cam0"], "cam1": gone}, rig="rig02")
+    bad = tmp_path / "board.yaml"
+    bad.write_text(yaml.safe_dump({"squares_x": 5, "squares_y": 7, "square_length": 0.004}))
+    with pytest.raises(ValueError, match=f"{bad}: missing board key"):
+        load_board(bad)
+    bad.write_text(yaml.safe_dump({**board_yaml_dict(), "dictionary": "DICT_NOPE"}))
+    with pytest.raises(ValueError, match="unknown ArUco dictionary"):
+        load_board(bad)
+    with pytest.raises(FileNotFoundError, match="board file not found"):
+        load_board(tmp_path / "missing.yaml")
+
+
+def test_inconsistent_view_is_rejected(rig_images, tmp_path):
+    """cam1's pose001 replaced by another moment: the pair cannot fit one board pose."""
+    _, board, dirs = rig_images
+    cam1 = tmp_path / "cam1"
+    shutil.copytree(dirs["cam1"], cam1)
+    shutil.copy(dirs["cam1"] / "pose004.png", cam1 / "pose001.png")
+    cams, report = calibrate_rig(board, {"cam0": dirs["cam0"], "cam1": cam1}, rig="rig01")
+    reasons = {
+        (n, r["image"]): r["reason"] for n, c in report["cameras"].items() for r in c["rejected"]
+    }
+    flagged = [k for k, why in reasons.items() if "reprojection RMS" in why]
+    assert flagged and all(img == "pose001.png" for _, img in flagged)
+    assert report["rms_px"] < 0.5
+    true = default_rig()
+    for n, cam in cams.items():
+        assert abs(cam.K[0, 0] / true[n].K[0, 0] - 1) < 0.005

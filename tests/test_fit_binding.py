@@ -1,0 +1,74 @@
+"""Bubble binding, centroids, velocities and advection, checked by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from surfphase.cameras import look_at
+from surfphase.fit import binding
+
+
+def _cams():
+    a = look_at("a", [0, 0, 0.1], [0, 0, 0], fx=100.0, width=21, height=21)
+    b = look_at("b", [0.1, 0, 0], [0, 0, 0], fx=100.0, width=21, height=21)
+    return [a, b]
+
+
+def test_view_order_most_masks_first():
+    one = np.full((5, 5), -1)
+    one[0, 0] = 3
+    two = np.full((5, 5), -1)
+    two[0, 0], two[4, 4] = 1, 2
+    assert binding.view_order([one, two]) == [1, 0]
+    assert binding.view_order([two, two]) == [0, 1]
+
+
+def test_bind_uses_view_order_and_skips_bound_surfels():
+    cams = _cams()
+    # Surfel A at the origin: pixel (10, 10) in both views. Surfel B at x = +0.01 m:
+    # view a sees it at column 20; view b looks along −x, so B is on its optical axis.
+    pts = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.05, 0.0]])
+    lab_a = np.full((21, 21), -1)
+    lab_a[10, 10] = 1  # A → bubble 1 in view a
+    lab_a[10, 20] = 2  # B → bubble 2 in view a
+    lab_b = np.full((21, 21), -1)
+    lab_b[10, 10] = 5  # A and B (same pixel) → bubble 5 in view b
+    lab_b[0, 0], lab_b[0, 1] = 6, 7  # view b has more distinct masks → visited first
+    out = binding.bind_surfels_to_bubbles(pts, cams, [lab_a, lab_b])
+    assert out.tolist() == [5, 5, -1]
+    # Without the extra mask in b, view a goes first (tie on count: more pixels).
+    lab_b[0, 0] = lab_b[0, 1] = -1
+    out = binding.bind_surfels_to_bubbles(pts, cams, [lab_a, lab_b])
+    assert out.tolist() == [1, 2, -1]
+
+
+def test_centroids_and_velocities_by_hand():
+    means = np.array([[0.0, 0, 0], [2.0, 0, 0], [0, 1.0, 0], [5.0, 5, 5]])
+    bubble = np.array([1, 1, 2, -1])
+    opa = np.array([1.0, 0.5, 0.2, 1.0])
+    scales = np.array([[1.0, 1.0], [2.0, 2.0], [1.0, 3.0], [1.0, 1.0]])
+    w = binding.surfel_weights(opa, scales)
+    np.testing.assert_allclose(w, [1.0, 2.0, 0.6, 1.0])
+    c = binding.bubble_centroids(means, bubble, w)
+    assert set(c) == {1, 2}
+    np.testing.assert_allclose(c[1], [4.0 / 3.0, 0, 0])
+    np.testing.assert_allclose(c[2], [0, 1.0, 0])
+    moved = means + np.array([[0.1, 0, 0], [0.1, 0, 0], [0, 0, 0.3], [9, 9, 9]])
+    v = binding.bubble_velocities(means, moved, bubble, w, dt=0.5)
+    np.testing.assert_allclose(v[1], [0.2, 0, 0])
+    np.testing.assert_allclose(v[2], [0, 0, 0.6])
+    with pytest.raises(ValueError):
+        binding.bubble_velocities(means, moved, bubble, w, dt=0.0)
+
+
+def test_advect_bubble_velocity_nucleation_per_surfel_and_unbound_static():
+    means = np.zeros((4, 3))
+    bubble = np.array([1, 0, -1, 7])
+    vb = {1: np.array([0.07, 0.3, 0.0])}
+    vs = np.array([[9.0, 9, 9], [0.03, 0.03, 0], [1.0, 1, 1], [0.0, 2.0, 0]])
+    out = binding.advect(means, bubble, vb, vs, dt=0.01)
+    np.testing.assert_allclose(out[0], [0.0007, 0.003, 0])  # bubble velocity
+    np.testing.assert_allclose(out[1], [0.0003, 0.0003, 0])  # nucleation: per surfel
+    np.testing.assert_allclose(out[2], [0, 0, 0])  # unbound: stays
+    np.testing.assert_allclose(out[3], [0, 0.02, 0])  # no bubble velocity: per surfel

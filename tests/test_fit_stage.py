@@ -1,0 +1,112 @@
+"""End-to-end stage-1 fit on the ray-cast toy session; kill-and-resume equality."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from test_fit_toy import make_toy_session, toy_spheres
+
+from surfphase.fit.outputs import load_surfels
+from surfphase.fit.stage import run_fit
+
+SMALL = {
+    "iters_first": 60,
+    "iters_next": 20,
+    "n_init": 600,
+    "hull_grid": 24,
+    "spawn_grid": 12,
+    "densify_every": 15,
+    "render_frames": 2,
+}
+
+
+@pytest.fixture(scope="module")
+def toy(tmp_path_factory):
+    return make_toy_session(tmp_path_factory.mktemp("toy"), frames=4, size=40)
+
+
+def test_fit_reconstructs_and_tracks_the_rising_bubble(toy, tmp_path):
+    torch.set_num_threads(2)
+    ingest, masks = toy
+    out = tmp_path / "fit"
+    summary = run_fit(ingest, masks, out, SMALL, device="cpu")
+    for name in ("surfels.npz", "bubbles.csv", "curves.csv", "summary.json"):
+        assert (out / name).exists()
+    assert len(list((out / "renders").glob("*.png"))) == 4
+    assert summary["frames"] == 4 and min(np.mean(p) for p in summary["psnr_per_frame"]) > 30
+    s = load_surfels(out / "surfels.npz")
+    F, N = s["alive"].shape
+    assert s["means"].shape == (F, N, 3) and s["velocity"].shape == (F, N, 3)
+    assert s["quats"].shape == (F, N, 4) and s["gamma"].shape == (F,)
+    assert np.all(s["opacity"][s["alive"]] <= 1) and np.isfinite(s["sdf"][s["alive"]]).all()
+    # Bubble 1 rises at (0.02, 0.25, 0) m/s; its centroid sits inside the true sphere.
+    table = pd.read_csv(out / "bubbles.csv")
+    b1 = table[table.bubble == 1].set_index("frame")
+    for f in range(4):
+        _, c, r = toy_spheres(f, 1000.0)[1]
+        assert np.linalg.norm(b1.loc[f, ["x", "y", "z"]].to_numpy() - c) < r
+    v = b1.loc[1:2, ["vx", "vy", "vz"]].to_numpy()
+    err = np.linalg.norm(v - [0.02, 0.25, 0.0], axis=1).mean() / 0.25
+    assert err < 0.25, (v, err)
+
+
+def _fit_cmd(ingest, masks, out, cfg, ckpt):
+    return [
+        sys.executable, "-m", "surfphase", "fit", "--ingest", str(ingest), "--masks",
+        str(masks), "--out", str(out), "--config", str(cfg), "--checkpoint", str(ckpt),
+        "--device", "cpu", "--threads", "1",
+    ]
+
+
+def test_killed_fit_resumes_to_the_same_result(toy, tmp_path):
+    ingest, masks = toy
+    cfg = tmp_path / "config.yaml"
+    params = {**SMALL, "iters_first": 20, "iters_next": 6, "frames": 3, "densify_every": 5}
+    cfg.write_text(json.dumps({"fit": params}))  # JSON is YAML
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    ref, ref_ckpt = tmp_path / "ref", tmp_path / "ref.ckpt"
+    subprocess.run(_fit_cmd(ingest, masks, ref, cfg, ref_ckpt), check=True, env=env)
+
+    out, ckpt = tmp_path / "run", tmp_path / "run.ckpt"
+    proc = subprocess.Popen(_fit_cmd(ingest, masks, out, cfg, ckpt), env=env)
+    deadline = time.time() + 120
+    while not (ckpt / "frame_00001.pt").exists():
+        assert proc.poll() is None, "fit finished before it could be killed"
+        assert time.time() < deadline
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert not (out / "surfels.npz").exists()
+    done = torch.load(ckpt / "state.pt", weights_only=False)["next_frame"]
+    assert 2 <= done < 3
+    subprocess.run(_fit_cmd(ingest, masks, out, cfg, ckpt), check=True, env=env)
+
+    a, b = load_surfels(ref / "surfels.npz"), load_surfels(out / "surfels.npz")
+    assert a.keys() == b.keys()
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    assert (ref / "bubbles.csv").read_text() == (out / "bubbles.csv").read_text()
+    assert (ref / "curves.csv").read_text() == (out / "curves.csv").read_text()
+
+
+def test_bad_inputs_name_the_file(tmp_path, toy):
+    ingest, masks = toy
+    with pytest.raises(FileNotFoundError, match="cameras.json"):
+        run_fit(tmp_path, masks, tmp_path / "o", SMALL, device="cpu")
+    with pytest.raises(ValueError, match="unknown parameter"):
+        run_fit(ingest, masks, tmp_path / "o", {"nope": 1}, device="cpu")
+    empty = tmp_path / "m"
+    empty.mkdir()
+    with pytest.raises(FileNotFoundError, match="cam0_labels.npy"):
+        run_fit(ingest, empty, tmp_path / "o", SMALL, device="cpu")
+    assert not Path(tmp_path / "o" / "surfels.npz").exists()

@@ -1,0 +1,256 @@
+"""Photron MRAW/CIH/CIHX and Phantom CINE readers against files written here.
+
+The references are the arrays the files were written from. 8/16-bit MRAW files are
+written with pyMRAW's own ``save_mraw``; 12-bit packed MRAW, CIHX headers and CINE
+files are written by the helpers below, byte by byte from the format descriptions
+(not with the reader's code). Where pycine is importable (it is not a dependency), its
+header parser and 16-bit reader cross-check the CINE files.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from surfphase.labformats import LAB_SUFFIXES, open_lab_video
+
+RNG = np.random.default_rng(0)
+
+
+def frames(n: int, h: int, w: int, bits: int) -> np.ndarray:
+    return RNG.integers(0, 2**bits, size=(n, h, w), dtype=np.uint16 if bits > 8 else np.uint8)
+
+
+# --- writers for what pyMRAW cannot write -----------------------------------------------
+
+
+def write_cih(path: Path, n: int, h: int, w: int, color_bit: int, effective: int, side: str, fps):
+    lines = [
+        "#Camera Information Header",
+        f"Record Rate(fps) : {fps}",
+        "Shutter Speed(s) : 1/10000",
+        f"Total Frame : {n}",
+        f"Original Total Frame : {n}",
+        "Start Frame : 0",
+        f"Image Width : {w}",
+        f"Image Height : {h}",
+        "Color Type : Mono",
+        f"Color Bit : {color_bit}",
+        "File Format : MRaw",
+        f"EffectiveBit Depth : {effective}",
+        f"EffectiveBit Side : {side}",
+        "",
+        "END",
+    ]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def pack12(images: np.ndarray) -> bytes:
+    """Photron 12-bit packing: pixels p0, p1 -> bytes p0[11:4], p0[3:0]p1[11:8], p1[7:0]."""
+    flat = images.astype(np.uint16).ravel()
+    p0, p1 = flat[0::2], flat[1::2]
+    out = np.empty((p0.size, 3), dtype=np.uint8)
+    out[:, 0] = p0 >> 4
+    out[:, 1] = ((p0 & 0xF) << 4) | (p1 >> 8)
+    out[:, 2] = p1 & 0xFF
+    return out.tobytes()
+
+
+def write_cihx(path: Path, n: int, h: int, w: int, bits: int, fps: float):
+    xml = f"""<?xml version="1.0" encoding="UTF-8" ?>
+<cih>
+<fileInfo><date>2026/11/22</date></fileInfo>
+<basicInfo><comment>bubble test</comment></basicInfo>
+<deviceInfo><deviceName>FASTCAM TEST</deviceName></deviceInfo>
+<recordInfo><recordRate>{fps}</recordRate><shutterSpeed>0.0001</shutterSpeed></recordInfo>
+<frameInfo><totalFrame>{n}</totalFrame><recordedFrame>{n}</recordedFrame></frameInfo>
+<imageDataInfo>
+<resolution><width>{w}</width><height>{h}</height></resolution>
+<effectiveBit><depth>{bits}</depth><side>Lower</side></effectiveBit>
+<colorInfo><type>Mono</type><bit>{bits}</bit></colorInfo>
+</imageDataInfo>
+<imageFileInfo><fileFormat>MRaw</fileFormat></imageFileInfo>
+</cih>
+"""
+    # Real CIHX files start with a binary block before the XML.
+    path.write_bytes(b"\x00\x01\x02\x03" + xml.encode())
+
+
+SETUP_SIZE = 12432  # size of the SETUP structure in current CINE files
+
+
+def write_cine(path: Path, images: np.ndarray, bit_count: int, real_bpp: int, fps: int):
+    """A minimal uncompressed CINE file: headers, SETUP, offset table, bottom-up images.
+
+    ``images``: (n, H, W) mono or (n, H, W, 3) BGR. Rows are padded to 4 bytes.
+    """
+    n, h, w = images.shape[:3]
+    ch = 3 if images.ndim == 4 else 1
+    item = 2 if bit_count in (16, 48) else 1
+    stride = (w * ch * item + 3) // 4 * 4
+    image_bytes = stride * h
+    off_bitmap, off_setup = 44, 44 + 40
+    off_offsets = off_setup + SETUP_SIZE
+    annotation = 8  # AnnotationSize + ImageSize fields, no annotation text
+    first = off_offsets + 8 * n
+    offsets = [first + i * (annotation + image_bytes) for i in range(n)]
+    head = struct.pack(
+        "<2sHHHiIiIIIIII",
+        b"CI",
+        44,
+        0,  # compression: grey
+        1,  # version
+        0,
+        n,
+        -n // 2,  # FirstImageNo: recordings often start before the trigger
+        n,
+        off_bitmap,
+        off_setup,
+        off_offsets,
+        0,
+        0,
+    )
+    bmp = struct.pack("<IiiHHIIiiII", 40, w, h, 1, bit_count, 0, image_bytes, 0, 0, 0, 0)
+    setup = bytearray(SETUP_SIZE)
+    struct.pack_into("<H", setup, 0, min(fps, 65535))  # FrameRate16
+    struct.pack_into("<H", setup, 142, SETUP_SIZE & 0xFFFF)  # Length
+    struct.pack_into("<I", setup, 768, fps)  # FrameRate
+    struct.pack_into("<I", setup, 896, real_bpp)  # RealBPP
+    struct.pack_into("<I", setup, 5732, 0)  # BlackLevel
+    struct.pack_into("<I", setup, 5736, 2**real_bpp - 1)  # WhiteLevel
+    with open(path, "wb") as f:
+        f.write(head + bmp + bytes(setup))
+        f.write(struct.pack(f"<{n}q", *offsets))
+        for img in images:
+            dt = "<u2" if item == 2 else "u1"
+            rows = img[::-1].astype(dt).reshape(h, w * ch).view(np.uint8)  # bottom-up
+            padded = np.zeros((h, stride), dtype=np.uint8)
+            padded[:, : rows.shape[1]] = rows
+            f.write(struct.pack("<II", annotation, image_bytes))  # AnnotationSize, ImageSize
+            f.write(padded.tobytes())
+
+
+# --- MRAW -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("bits", [8, 16])
+def test_mraw_written_by_pymraw(tmp_path, bits):
+    pymraw = pytest.importorskip("pyMRAW")
+    data = frames(5, 6, 10, 12 if bits == 16 else 8)
+    _, cih = pymraw.save_mraw(
+        data, str(tmp_path / "s01_cam0.cih"), bit_depth=bits, info_dict={"Record Rate(fps)": 5000}
+    )
+    for given in (cih, tmp_path / "s01_cam0.mraw"):
+        v = open_lab_video(given)
+        assert (v.count, v.shape, v.fps) == (5, (6, 10), 5000.0)
+        assert v.bit_depth == (12 if bits == 16 else 8)  # save_mraw declares 12 effective bits
+        got = np.stack(list(v.read()))
+        assert got.dtype == (np.uint16 if bits == 16 else np.uint8)
+        np.testing.assert_array_equal(got, data)
+        np.testing.assert_array_equal(np.stack(list(v.read([4, 0]))), data[[4, 0]])
+
+
+def test_mraw_12bit_packed(tmp_path):
+    data = frames(4, 8, 6, 12)
+    (tmp_path / "rec.mraw").write_bytes(pack12(data))
+    write_cih(tmp_path / "rec.cih", 4, 8, 6, 12, 12, "Lower", 20000)
+    v = open_lab_video(tmp_path / "rec.cih")
+    assert (v.count, v.shape, v.bit_depth, v.fps) == (4, (8, 6), 12, 20000.0)
+    np.testing.assert_array_equal(np.stack(list(v.read([2, 3, 0]))), data[[2, 3, 0]])
+
+
+def test_mraw_16bit_high_side_is_shifted_down(tmp_path):
+    data = frames(2, 4, 4, 12)
+    (tmp_path / "hi.mraw").write_bytes((data.astype("<u2") << 4).tobytes())
+    write_cih(tmp_path / "hi.cih", 2, 4, 4, 16, 12, "Higher", 1000)
+    v = open_lab_video(tmp_path / "hi.mraw")
+    assert v.bit_depth == 12
+    np.testing.assert_array_equal(np.stack(list(v.read())), data)
+
+
+def test_cihx_header(tmp_path):
+    data = frames(3, 5, 4, 8)
+    (tmp_path / "x.mraw").write_bytes(data.tobytes())
+    write_cihx(tmp_path / "x.cihx", 3, 5, 4, 8, 7500.0)
+    v = open_lab_video(tmp_path / "x.cihx")
+    assert (v.count, v.shape, v.bit_depth, v.fps) == (3, (5, 4), 8, 7500.0)
+    np.testing.assert_array_equal(np.stack(list(v.read())), data)
+
+
+def test_mraw_errors_name_the_file(tmp_path):
+    write_cih(tmp_path / "a.cih", 4, 8, 8, 8, 8, "Lower", 100)
+    with pytest.raises(FileNotFoundError, match="a.mraw"):
+        open_lab_video(tmp_path / "a.cih")
+    (tmp_path / "a.mraw").write_bytes(b"\0" * 100)  # 4 frames of 64 bytes announced
+    with pytest.raises(ValueError, match="a.mraw.*4 frames"):
+        open_lab_video(tmp_path / "a.cih")
+    with pytest.raises(FileNotFoundError, match="b.mraw"):
+        open_lab_video(tmp_path / "b.mraw")
+    (tmp_path / "a.mraw").write_bytes(b"\0" * 256)
+    with pytest.raises(ValueError, match="frame 4 out of range"):
+        list(open_lab_video(tmp_path / "a.cih").read([4]))
+
+
+# --- CINE -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("bit_count", "real_bpp", "w"), [(8, 8, 6), (16, 12, 5), (16, 16, 4)])
+def test_cine_mono(tmp_path, bit_count, real_bpp, w):
+    data = frames(4, 3, w, real_bpp)
+    write_cine(tmp_path / "s.cine", data, bit_count, real_bpp, fps=24000)
+    v = open_lab_video(tmp_path / "s.cine")
+    assert (v.count, v.shape, v.bit_depth, v.fps) == (4, (3, w), real_bpp, 24000.0)
+    got = np.stack(list(v.read()))
+    assert got.dtype == (np.uint8 if bit_count == 8 else np.uint16)
+    np.testing.assert_array_equal(got, data)
+    np.testing.assert_array_equal(np.stack(list(v.read([3, 1]))), data[[3, 1]])
+
+
+def test_cine_colour_to_grey(tmp_path):
+    bgr = frames(2, 4, 3 * 3, 8).reshape(2, 4, 3, 3)
+    write_cine(tmp_path / "c.cine", bgr, 24, 8, fps=1000)
+    got = np.stack(list(open_lab_video(tmp_path / "c.cine").read()))
+    ref = np.rint(0.114 * bgr[..., 0] + 0.587 * bgr[..., 1] + 0.299 * bgr[..., 2])
+    np.testing.assert_array_equal(got, ref.astype(np.uint8))
+
+
+def test_cine_cross_checked_with_pycine(tmp_path):
+    """pycine (when installed) reads the same header fields and 16-bit frames."""
+    pytest.importorskip("pycine.raw")
+    from pycine.file import read_header
+    from pycine.raw import read_frames
+
+    data = frames(3, 4, 6, 12)
+    write_cine(tmp_path / "p.cine", data, 16, 12, fps=3000)
+    head = read_header(str(tmp_path / "p.cine"))
+    assert head["setup"].FrameRate == 3000 and head["setup"].RealBPP == 12
+    assert (head["bitmapinfoheader"].biWidth, head["bitmapinfoheader"].biHeight) == (6, 4)
+    gen, _, bpp = read_frames(str(tmp_path / "p.cine"))
+    theirs = np.stack(list(gen))
+    ours = np.stack(list(open_lab_video(tmp_path / "p.cine").read()))
+    assert bpp == 12
+    np.testing.assert_array_equal(theirs, data)
+    np.testing.assert_array_equal(ours, theirs)
+
+
+def test_cine_errors(tmp_path):
+    (tmp_path / "bad.cine").write_bytes(b"XX" + b"\0" * 100)
+    with pytest.raises(ValueError, match="bad.cine.*not a CINE"):
+        open_lab_video(tmp_path / "bad.cine")
+    with pytest.raises(FileNotFoundError, match="none.cine"):
+        open_lab_video(tmp_path / "none.cine")
+    data = frames(2, 3, 4, 8)
+    write_cine(tmp_path / "t.cine", data, 8, 8, fps=10)
+    blob = (tmp_path / "t.cine").read_bytes()
+    (tmp_path / "t.cine").write_bytes(blob[:-5])
+    with pytest.raises(ValueError, match="t.cine: image 1 truncated"):
+        list(open_lab_video(tmp_path / "t.cine").read())
+    with pytest.raises(ValueError, match="not a lab format"):
+        open_lab_video(tmp_path / "x.avi")
+
+
+def test_suffixes():
+    assert LAB_SUFFIXES == {".cih", ".cihx", ".mraw", ".cine"}

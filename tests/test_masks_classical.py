@@ -1,0 +1,115 @@
+"""Classical bubble segmenter on shadowgraph-style frames drawn here."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from surfphase.masks import classical
+
+SS = 4  # supersampling of the drawn truth
+
+
+def shadowgraph(h, w, bubbles, seed=0, noise=0.01, plate_row=None):
+    """Bright uneven backlight, bubbles as dark rings with bright cores.
+
+    ``bubbles``: (u, v, r) pixels. With ``plate_row`` a dim static band (the heated
+    plate's top face) fills rows ≥ plate_row and a black band the last rows.
+    Returns the image (float32) and truth labels (pixel-centre coverage ≥ 1/2).
+    """
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    bg = 0.75 + 0.15 * (xx / w) - 0.1 * (yy / h) - 0.15 * (
+        ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (w * w / 4 + h * h / 4))
+    img = bg.copy()
+    if plate_row is not None:
+        img[plate_row:] = 0.26 * bg[plate_row:]
+        img[h - max(2, h // 16):] = 0.03
+    truth = np.full((h, w), -1, np.int32)
+    off = (np.arange(SS) + 0.5) / SS - 0.5
+    oy, ox = np.meshgrid(off, off, indexing="ij")
+    for k, (cx, cy, r) in enumerate(bubbles):
+        d = np.sqrt((xx[..., None, None] + ox - cx) ** 2 + (yy[..., None, None] + oy - cy) ** 2)
+        rho = d / r
+        trans = np.where(rho < 1, 0.12 + 0.8 * np.exp(-((rho / 0.45) ** 2)), 1.0)
+        bright = np.where(rho < 1, bg[..., None, None] * trans, np.nan)
+        # A bubble in front of the plate is lit by the backlight, not by the plate.
+        px = np.where(np.isnan(bright), img[..., None, None], bright).mean(axis=(2, 3))
+        cover = (rho < 1).mean(axis=(2, 3))
+        img = np.where(cover > 0, px, img)
+        truth[cover >= 0.5] = k
+    img = img + np.random.default_rng(seed).normal(0, noise, img.shape)
+    return np.clip(img, 0, 1).astype(np.float32), truth
+
+
+def best_iou(truth, labels, k):
+    t = truth == k
+    ids, cnt = np.unique(labels[t], return_counts=True)
+    j = ids[np.argmax(cnt)]
+    if j < 0:
+        return 0.0
+    p = labels == j
+    return (t & p).sum() / (t | p).sum()
+
+
+BUBBLES_128 = [(30, 40, 10), (80, 40, 12), (101, 40, 10), (60, 100, 15), (20, 110, 5),
+               (100, 95, 8), (111, 101, 6)]
+
+
+@pytest.mark.parametrize("scale", [1, 4])
+def test_segments_every_bubble_and_splits_touching_ones(scale):
+    bubbles = [(u * scale, v * scale, r * scale) for u, v, r in BUBBLES_128]
+    img, truth = shadowgraph(128 * scale, 128 * scale, bubbles)
+    labels, scores = classical.segment_frame(img)
+    assert labels.dtype == np.int32 and labels.shape == img.shape
+    # (80, 40, 12) and (101, 40, 10) overlap, as do the last two: still 7 instances.
+    assert labels.max() + 1 == len(bubbles) == len(scores)
+    for k in range(len(bubbles)):
+        assert best_iou(truth, labels, k) > 0.9, k
+    assert np.all(scores > 0.3)
+
+
+def test_integer_frames_and_bright_polarity():
+    img, truth = shadowgraph(96, 96, [(30, 30, 9), (65, 60, 12)], seed=3)
+    ref, _ = classical.segment_frame(img)
+    as16 = np.round(img * 65535).astype(np.uint16)
+    np.testing.assert_array_equal(classical.segment_frame(as16)[0], ref)
+    inv, _ = classical.segment_frame(1.0 - img, {"polarity": "bright"})
+    np.testing.assert_array_equal(inv, ref)
+    with pytest.raises(ValueError, match="polarity"):
+        classical.segment_frame(img, {"polarity": "grey"})
+
+
+def test_background_fit_follows_backlight_not_bubbles():
+    img, truth = shadowgraph(128, 128, BUBBLES_128, noise=0.0)
+    yy, xx = np.mgrid[0:128, 0:128].astype(np.float64)
+    true_bg = 0.75 + 0.15 * (xx / 128) - 0.1 * (yy / 128) - 0.15 * (
+        ((xx - 64) ** 2 + (yy - 64) ** 2) / (2 * 64 * 64))
+    bg = classical.estimate_background(img)
+    assert np.max(np.abs(bg - true_bg)[truth < 0]) < 0.01
+
+
+def test_empty_frame_has_no_instance():
+    img, _ = shadowgraph(64, 64, [], seed=1)
+    labels, scores = classical.segment_frame(img)
+    assert (labels == -1).all() and scores.size == 0
+
+
+def test_bubble_sitting_on_the_plate_is_whole():
+    """The plate is static; a bubble stays on it in every frame but moves slightly."""
+    h = w = 128
+    frames, truths = [], []
+    for t in range(10):
+        sites = [(40 + 0.3 * t, 92, 9), (90, 50 - 3 * t, 8)]
+        img, tr = shadowgraph(h, w, sites, seed=t, plate_row=96)
+        frames.append(img)
+        truths.append(tr)
+    stack = np.stack(frames)
+    ref = classical.session_reference(stack)
+    bg, static = classical.static_background(ref)
+    # The plate (and its 2-row rim) is static, the backlight above is not.
+    assert static[100:].all() and not static[:90].any()
+    for t in (0, 9):
+        labels, _ = classical.segment_frame(stack[t], None, (bg, static))
+        assert best_iou(truths[t], labels, 0) > 0.8
+        assert best_iou(truths[t], labels, 1) > 0.9
+        assert labels.max() + 1 == 2

@@ -1,0 +1,277 @@
+"""Synthetic campaign generator: the ground truth agrees with itself and with the images.
+
+References are independent of the generator's own bookkeeping: analytic sphere and
+cap volumes, ``np.gradient`` for finite differences, pymeshlab for mesh volumes,
+brute-force ray marching for the masks.
+"""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pandas as pd
+import pymeshlab
+import pytest
+import yaml
+
+from surfphase.cameras import load_cameras
+from surfphase.cli import main as cli_main
+from surfphase.synth.bubbles import BubbleScene, FrameState
+from surfphase.synth.campaign import campaign_settings, session_scene, write_campaign
+from surfphase.synth.groundtruth import frame_truth, mesh_volume, write_ply
+from surfphase.synth.shadowgraph import PLATE_MAX, PLATE_MIN
+
+SEED = 3
+
+
+def _sphere_state(center, radius) -> FrameState:
+    return FrameState(
+        t=0.0,
+        ids=np.array([1]),
+        centers=np.asarray([center], dtype=float),
+        radii=np.array([radius]),
+        lobe_bubble=np.array([0]),
+        axes=np.eye(3)[None],
+        amps=np.zeros((1, 3)),
+        k_internal=np.zeros(1),
+    )
+
+
+def test_sphere_field_is_exact_distance_cut_by_plate():
+    st = _sphere_state([0.001, 0.004, -0.002], 1e-3)
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-0.004, 0.008, size=(500, 3))
+    want = np.maximum(np.linalg.norm(p - st.centers[0], axis=1) - 1e-3, -p[:, 1])
+    np.testing.assert_allclose(st.sdf(p), want, atol=1e-15)
+
+
+@pytest.mark.parametrize("height", [0.005, 0.0006])
+def test_truth_volume_of_free_and_plate_cut_sphere(height):
+    r = 1e-3
+    tr = frame_truth(_sphere_state([0.0, height, 0.0], r), spacing=5e-5)
+    if height > r:
+        v_true, cy = 4 / 3 * np.pi * r**3, height
+    else:  # sphere minus the cap below y = 0 (cap height r − height)
+        hc = r - height
+        v_cap = np.pi * hc**2 * (3 * r - hc) / 3
+        v_true = 4 / 3 * np.pi * r**3 - v_cap
+        # centroid of the part above the plate, by slicing (independent quadrature)
+        y = np.linspace(0.0, height + r, 20001)
+        area = np.pi * np.clip(r**2 - (y - height) ** 2, 0, None)
+        cy = np.trapezoid(area * y, y) / np.trapezoid(area, y)
+    assert tr.volumes[0] == pytest.approx(v_true, rel=2e-3)
+    assert tr.centroids[0, 1] == pytest.approx(cy, abs=2e-6)
+    assert mesh_volume(tr.verts, tr.faces) == pytest.approx(v_true, rel=5e-3)
+
+
+def test_ply_is_read_back_by_pymeshlab(tmp_path):
+    tr = frame_truth(_sphere_state([0.0, 0.005, 0.0], 1e-3), spacing=1e-4)
+    write_ply(tmp_path / "s.ply", tr.verts, tr.faces)
+    ms = pymeshlab.MeshSet()
+    ms.load_new_mesh(str(tmp_path / "s.ply"))
+    m = ms.current_mesh()
+    assert (m.vertex_number(), m.face_number()) == (len(tr.verts), len(tr.faces))
+    v = ms.get_geometric_measures()["mesh_volume"]
+    assert v == pytest.approx(mesh_volume(tr.verts, tr.faces), rel=1e-5)
+
+
+def test_scene_is_deterministic_and_physical():
+    a = BubbleScene(11, 24 / 1500, bubbles=5, force_merge=True)
+    b = BubbleScene(11, 24 / 1500, bubbles=5, force_merge=True)
+    sa, sb = a.state(0.007), b.state(0.007)
+    np.testing.assert_array_equal(sa.centers, sb.centers)
+    np.testing.assert_array_equal(sa.amps, sb.amps)
+    assert a.merges() == b.merges()
+    for bub in a.by_id.values():
+        assert 0.5e-3 <= bub.r_detach <= 2.0e-3  # 1–4 mm diameter
+        if not bub.extra.get("wake_of"):
+            assert 0.1 <= bub.u_term[1] <= 0.3  # terminal rise speed, m/s
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    out = tmp_path_factory.mktemp("synth") / "campaign"
+    write_campaign(out, preset="tiny", seed=SEED)
+    return out
+
+
+def test_layout_and_sheets(tiny):
+    cfg = yaml.safe_load((tiny / "config.yaml").read_text())
+    assert cfg == {
+        "sessions": "sessions.tsv",
+        "rigs": "rigs.tsv",
+        "prior_clips": "clips",
+        "seed": SEED,
+    }
+    sessions = pd.read_csv(tiny / "sessions.tsv", sep="\t", keep_default_na=False)
+    assert list(sessions.columns) == ["session", "rig", "fps", "frames", "cam0", "cam1", "gt"]
+    rigs = pd.read_csv(tiny / "rigs.tsv", sep="\t")
+    assert list(rigs.columns) == ["rig", "board", "cam0", "cam1"]
+    board = yaml.safe_load((tiny / rigs.board[0]).read_text())
+    assert board["squares_x"] == 5 and board["squares_y"] == 7
+    assert board["square_length"] == 0.004 and board["marker_length"] == 0.003
+    assert board["dictionary"] == "DICT_4X4_50"
+    for cam in ("cam0", "cam1"):
+        assert len(list((tiny / rigs[cam][0]).glob("*.png"))) >= 6
+    settings = campaign_settings("tiny")
+    row = sessions.iloc[0]
+    assert row.session == "session01" and row.rig == "rig01" and row["frames"] == ""
+    cams = load_cameras(tiny / row["gt"] / "cameras.json")
+    meta = json.loads((tiny / row["gt"] / "cameras.json").read_text())
+    assert meta["fps"] == float(row["fps"]) == settings["fps"] and meta["fit_scale"] == 0.25
+    names = ["cam0", "cam1", "mid"] + [f"orbit{k:02d}" for k in range(1, 12)]
+    assert sorted(cams) == sorted(names)
+    native, fit = settings["native"], settings["native"] // 4
+    for n in names:
+        c = cams[n]
+        if n in ("cam0", "cam1"):
+            assert (c.width, c.height, c.role) == (native, native, "input")
+            assert np.any(c.dist != 0)
+            frames = sorted((tiny / row[n]).glob("*.png"))
+            assert len(frames) == settings["frames"]
+            img = cv2.imread(str(frames[0]), cv2.IMREAD_UNCHANGED)
+            assert img.shape == (native, native) and img.dtype == np.uint8
+            m = np.load(tiny / row["gt"] / "masks" / f"{n}.npy")
+            assert m.shape == (settings["frames"], native, native) and m.dtype == np.int32
+        else:
+            assert (c.width, c.height) == (fit, fit) and not np.any(c.dist)
+            views = sorted((tiny / row["gt"] / "views" / n).glob("*.png"))
+            assert len(views) == settings["frames"]
+            assert cv2.imread(str(views[0]), cv2.IMREAD_UNCHANGED).shape == (fit, fit)
+    assert len(sorted((tiny / row["gt"] / "meshes").glob("*.ply"))) == settings["frames"]
+    clips = sorted((tiny / cfg["prior_clips"]).iterdir())
+    assert len(clips) == settings["clips"]
+    img = cv2.imread(str(sorted(clips[0].glob("*.png"))[0]), cv2.IMREAD_UNCHANGED)
+    assert img.shape == (fit, fit)
+
+
+def test_velocities_are_finite_differences_of_centroids(tiny):
+    df = pd.read_csv(tiny / "session01" / "gt" / "bubbles.csv")
+    fps = campaign_settings("tiny")["fps"]
+    n_checked = 0
+    for _, g in df.groupby("bubble"):
+        g = g.sort_values("frame")
+        assert np.all(np.diff(g.frame) == 1), "a bubble's frames are contiguous"
+        if len(g) < 2:
+            assert g[["vx", "vy", "vz"]].isna().all(axis=None)
+            continue
+        for c, v in zip("xyz", ("vx", "vy", "vz"), strict=True):
+            want = np.gradient(g[c].to_numpy(), 1.0 / fps)
+            np.testing.assert_allclose(g[v].to_numpy(), want, rtol=1e-6, atol=1e-8)
+        n_checked += 1
+    assert n_checked >= 2
+    rising = df[(df.y > 0.004)]
+    assert 0.08 < rising.vy.median() < 0.35  # plausible rise speeds, m/s
+
+
+def test_mesh_volume_matches_equivalent_radii(tiny):
+    df = pd.read_csv(tiny / "session01" / "gt" / "bubbles.csv")
+    for f, g in df.groupby("frame"):
+        ms = pymeshlab.MeshSet()
+        ms.load_new_mesh(str(tiny / "session01" / "gt" / "meshes" / f"{f:06d}.ply"))
+        v_mesh = ms.get_geometric_measures()["mesh_volume"]
+        v_eq = (4 / 3 * np.pi * g.r_eq.to_numpy() ** 3).sum()
+        assert v_mesh == pytest.approx(v_eq, rel=0.02), f"frame {f}"
+
+
+def test_merge_ids(tiny):
+    gt = tiny / "session01" / "gt"
+    merges = pd.read_csv(gt / "merges.csv")
+    assert len(merges) >= 1
+    df = pd.read_csv(gt / "bubbles.csv")
+    for m in merges.itertuples():
+        for parent in (m.parent_a, m.parent_b):
+            assert df[(df.bubble == parent) & (df.frame >= m.frame)].empty
+        assert df[df.bubble == m.merged].frame.min() == m.frame
+
+
+def _march_first_label(state, origin, dirs, t0=0.03, t1=0.09, step=4e-6):
+    """Brute force: first sample along each ray inside the vapour, its label (-1: none)."""
+    ts = np.arange(t0, t1, step)
+    out = np.full(len(dirs), -1)
+    t_first = np.full(len(dirs), np.inf)
+    for i, d in enumerate(dirs):
+        pts = origin + ts[:, None] * d
+        # keep the samples near a bubble to save time (lobe bounding spheres)
+        near = np.zeros(len(ts), dtype=bool)
+        for c, rb in zip(state.centers, state.bound_radii, strict=True):
+            near |= np.linalg.norm(pts - c, axis=1) < rb
+        if not near.any():
+            continue
+        f, lab = state.sdf_and_label(pts[near])
+        inside = np.flatnonzero(f < 0)
+        if inside.size:
+            out[i] = lab[inside[0]]
+            t_first[i] = ts[near][inside[0]]
+    return out, t_first
+
+
+def _plate_entry(origin, dirs):
+    with np.errstate(divide="ignore"):
+        t1 = (PLATE_MIN - origin) / dirs
+        t2 = (PLATE_MAX - origin) / dirs
+    tin = np.minimum(t1, t2).max(axis=1)
+    tout = np.maximum(t1, t2).min(axis=1)
+    return np.where((tout >= tin) & (tin > 0), tin, np.inf)
+
+
+def test_masks_are_projections_of_the_true_field(tiny):
+    cfg = campaign_settings("tiny")
+    scene = session_scene(SEED, 0, cfg)
+    gt = tiny / "session01" / "gt"
+    cams = load_cameras(gt / "cameras.json")
+    rng = np.random.default_rng(0)
+    frame = cfg["frames"] // 2
+    state = scene.state(frame / cfg["fps"])
+    for name in ("cam0", "cam1"):
+        cam = cams[name]
+        mask = np.load(gt / "masks" / f"{name}.npy")[frame]
+        fg = np.argwhere(mask >= 0)
+        ring = np.argwhere(cv2.dilate((mask >= 0).astype(np.uint8), np.ones((7, 7))) & (mask < 0))
+        pick = np.concatenate(
+            [
+                fg[rng.choice(len(fg), 60, replace=False)],
+                ring[rng.choice(len(ring), 40, replace=False)],
+            ]
+        )
+        uv = pick[:, ::-1].astype(float)  # (row, col) -> (u, v)
+        dirs = cam.pixel_rays(uv, distorted=True)
+        lab, t_first = _march_first_label(state, cam.center, dirs)
+        lab = np.where(t_first < _plate_entry(cam.center, dirs), lab, -1)
+        agree = lab == mask[pick[:, 0], pick[:, 1]]
+        assert agree.mean() >= 0.97, f"{name}: {agree.mean():.3f} of sampled pixels agree"
+
+
+def test_images_look_backlit(tiny):
+    gt = tiny / "session01" / "gt"
+    mask = np.load(gt / "masks" / "cam0.npy")[0]
+    img = cv2.imread(str(tiny / "session01" / "cam0" / "000000.png"), cv2.IMREAD_UNCHANGED)
+    upper = img[: img.shape[0] // 2]
+    bg = upper[mask[: img.shape[0] // 2] < 0]
+    assert bg.mean() > 150  # bright backlight
+    fg = img[cv2.erode((mask >= 0).astype(np.uint8), np.ones((3, 3))) > 0]
+    assert fg.size > 0 and np.median(fg) < 0.5 * bg.mean()  # dark bubbles (bright cores are small)
+    assert fg.max() > 0.5 * bg.mean()  # ... with a bright core
+
+
+def test_write_campaign_refuses_non_empty_folder(tmp_path):
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "keep.txt").write_text("mine")
+    with pytest.raises(ValueError, match="not empty"):
+        write_campaign(tmp_path / "x", preset="tiny")
+    with pytest.raises(ValueError, match="preset"):
+        write_campaign(tmp_path / "y", preset="huge")
+
+
+def test_cli_small_campaign(tmp_path):
+    out = tmp_path / "c"
+    rc = cli_main(
+        ["synth", "--preset", "tiny", "--out", str(out), "--seed", "5", "--frames", "2",
+         "--native", "128", "--clips", "1", "--clip-frames", "2", "--bit-depth", "16"]
+    )  # fmt: skip
+    assert rc == 0
+    img = cv2.imread(str(out / "session01" / "cam1" / "000001.png"), cv2.IMREAD_UNCHANGED)
+    assert img.dtype == np.uint16 and img.shape == (128, 128)
+    assert len(pd.read_csv(out / "session01" / "gt" / "bubbles.csv")) > 0
