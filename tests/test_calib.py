@@ -165,12 +165,18 @@ def test_missing_folder_and_bad_board(rig_images, tmp_path):
 
 
 def test_inconsistent_view_is_rejected(rig_images, tmp_path):
-    """cam1's pose001 replaced by another moment: the pair cannot fit one board pose."""
+    """cam1's pose001 replaced by another moment: the pair cannot fit one board pose.
+
+    Only the first 12 poses, to keep the test short."""
     _, board, dirs = rig_images
-    cam1 = tmp_path / "cam1"
-    shutil.copytree(dirs["cam1"], cam1)
-    shutil.copy(dirs["cam1"] / "pose004.png", cam1 / "pose001.png")
-    cams, report = calibrate_rig(board, {"cam0": dirs["cam0"], "cam1": cam1}, rig="rig01")
+    sub = {}
+    for n in ("cam0", "cam1"):
+        sub[n] = tmp_path / n
+        sub[n].mkdir()
+        for k in range(12):
+            shutil.copy(dirs[n] / f"pose{k:03d}.png", sub[n])
+    shutil.copy(dirs["cam1"] / "pose004.png", sub["cam1"] / "pose001.png")
+    cams, report = calibrate_rig(board, sub, min_images=4, rig="rig01")
     reasons = {
         (n, r["image"]): r["reason"] for n, c in report["cameras"].items() for r in c["rejected"]
     }

@@ -50,9 +50,13 @@ munge -n | unmunge >/dev/null  # fails here, not later, if munge does not work
 # --- slurm.conf from this host --------------------------------------------------------------
 HOST=$(hostname -s)
 CPUS=$(nproc)
-# Memory as slurmd itself measures it (MB); declaring more would drain the node.
+# Memory as slurmd measures it (MB), but at least 64 GB: the project's profile asks for
+# memory sized for real clusters, and this test node must accept those requests. With
+# SlurmdParameters=config_overrides the node registers with the configured values;
+# memory is not enforced here (no cgroups), so jobs simply use what they need.
 MEM_MB=$(slurmd -C | sed -n 's/.*RealMemory=\([0-9]*\).*/\1/p' | head -1)
 MEM_MB=${MEM_MB:-$(awk '/MemTotal/ {print int($2/1024)}' /proc/meminfo)}
+MEM_MB=$((MEM_MB > 65536 ? MEM_MB : 65536))
 
 install -d -m 0755 "$CONF_DIR" "$LOG_DIR" /var/spool/slurmctld /var/spool/slurmd
 cat >"$CONF_DIR/slurm.conf" <<CONF
@@ -74,6 +78,8 @@ MpiDefault=none
 SchedulerType=sched/backfill
 SelectType=select/cons_tres
 SelectTypeParameters=CR_Core_Memory
+SlurmdParameters=config_overrides
+DefMemPerCPU=1000
 ReturnToService=2
 # Finished jobs stay visible to squeue/scontrol for 10 minutes (Snakemake polls squeue).
 MinJobAge=600

@@ -149,26 +149,48 @@ class _Problem:
         return np.concatenate(res), (np.vstack(jac) if jacobian else None)
 
 
-def _bundle_adjust(problem: _Problem, x0: np.ndarray, views: list[tuple[int, int, Detection]]):
+def _bundle_adjust(
+    problem: _Problem,
+    x0: np.ndarray,
+    views: list[tuple[int, int, Detection]],
+    robust_scale: float | None = None,
+    robust_rounds: int = 4,
+):
     """Minimise all reprojection errors; ``views`` are (camera, image index, detection).
 
-    Returns the parameters and the (N_k, 2) residuals (pixels) of each view.
+    With ``robust_scale`` (px), the soft-L1 loss of that scale is minimised by
+    iteratively reweighted least squares (weight ``1/sqrt(1 + (e/scale)²)`` per corner
+    of error ``e``), so views that do not fit cannot pull the solution (used to find
+    them); otherwise plain least squares. Levenberg–Marquardt throughout.
+    Returns the parameters and the (N_k, 2) unweighted residuals (pixels) of each view.
     """
-    sol = least_squares(
-        lambda x: problem.residuals(x, views)[0],
-        x0,
-        jac=lambda x: problem.residuals(x, views, jacobian=True)[1],
-        x_scale="jac",
-        method="lm",
-        xtol=1e-14,
-        ftol=1e-14,
-        gtol=1e-14,
-        max_nfev=500,
-    )
-    res = problem.residuals(sol.x, views)[0]
     sizes = np.cumsum([0] + [2 * len(d) for _, _, d in views])
+
+    def weights(x: np.ndarray) -> np.ndarray:
+        e = np.linalg.norm(problem.residuals(x, views)[0].reshape(-1, 2), axis=1)
+        return np.repeat(1.0 / np.sqrt(1.0 + (e / robust_scale) ** 2), 2)
+
+    x = x0
+    w = weights(x) if robust_scale else np.ones(sizes[-1])
+    for _ in range(robust_rounds if robust_scale else 1):
+        sqrt_w = np.sqrt(w)
+        sol = least_squares(
+            lambda x, s=sqrt_w: problem.residuals(x, views)[0] * s,
+            x,
+            jac=lambda x, s=sqrt_w: problem.residuals(x, views, jacobian=True)[1] * s[:, None],
+            x_scale="jac",
+            method="lm",
+            xtol=1e-10,
+            ftol=1e-10,
+            gtol=1e-10,
+            max_nfev=100,
+        )
+        x = sol.x
+        if robust_scale:
+            w = weights(x)
+    res = problem.residuals(x, views)[0]
     per_view = [res[sizes[k] : sizes[k + 1]].reshape(-1, 2) for k in range(len(views))]
-    return sol.x, per_view
+    return x, per_view
 
 
 def _parameter_sd(problem: _Problem, x: np.ndarray, views) -> np.ndarray:
@@ -190,6 +212,11 @@ def _parameter_sd(problem: _Problem, x: np.ndarray, views) -> np.ndarray:
     return np.sqrt(np.clip(np.diag(cov), 0.0, None)) / scale
 
 
+def _angle(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """Angle (rad) of the rotation between ``Ra`` and ``Rb``."""
+    return float(np.arccos(np.clip((np.trace(Ra @ Rb.T) - 1) / 2, -1.0, 1.0)))
+
+
 def _rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(np.asarray(r) ** 2, axis=-1)))) if len(r) else 0.0
 
@@ -202,6 +229,7 @@ def calibrate_rig_detailed(
     min_corners: int = 4,
     max_view_rms: float = 1.0,
     fix_k3: bool = True,
+    max_refits: int = 8,
 ) -> Calibration:
     """Calibrate all cameras of a rig from synchronized ChArUco images.
 
@@ -214,6 +242,7 @@ def calibrate_rig_detailed(
         rig: rig id, used in error messages and the report.
         min_corners: fewest corners for a view to be used.
         max_view_rms: views whose reprojection RMS (px) exceeds this are rejected.
+        max_refits: most robust passes (each may reject views) before the final fit.
         fix_k3: keep the 6th-order radial term at zero (narrow lenses cannot pin it).
 
     Returns:
@@ -300,13 +329,21 @@ def calibrate_rig_detailed(
                 f"{where}no image shows the board to both {names[0]} and {names[c]} "
                 f"({dirs[names[0]]}, {dirs[names[c]]}): the extrinsics cannot be tied"
             )
-        best = max(
-            shared, key=lambda i: min(len(detections[names[0]][i]), len(detections[names[c]][i]))
-        )
-        R0, t0 = _rt_to_mat(*cam_poses[0][best])
-        Rc, tc = _rt_to_mat(*cam_poses[c][best])
-        R = Rc @ R0.T
-        extr.append(_mat_to_rt(R, tc - R @ t0))
+        candidates = []
+        for i in shared:
+            R0, t0 = _rt_to_mat(*cam_poses[0][i])
+            Rc, tc = _rt_to_mat(*cam_poses[c][i])
+            R = Rc @ R0.T
+            candidates.append((R, tc - R @ t0))
+        # The medoid of the shared views' estimates: one bad view cannot spoil it.
+        cost = [
+            sum(
+                _angle(Ra, Rb) + np.linalg.norm(ta - tb) / max(np.linalg.norm(ta), 1e-12)
+                for Rb, tb in candidates
+            )
+            for Ra, ta in candidates
+        ]
+        extr.append(_mat_to_rt(*candidates[int(np.argmin(cost))]))
 
     images = sorted({i for n in names for i in detections[n]})
     poses = {}
@@ -319,42 +356,53 @@ def calibrate_rig_detailed(
         Re, te = _rt_to_mat(*np.split(extr[c], 2))
         poses[i] = _mat_to_rt(Re.T @ Rb, Re.T @ (tb - te))
 
-    # Steps 3-4: joint bundle adjustment; drop views that do not fit, refit (twice at most).
+    # Steps 3-4: joint bundle adjustment. A robust loss first, so that views that do not
+    # fit stand out; drop the worst of them (above the limit and within half of the worst
+    # RMS) and repeat from the per-camera start; then plain least squares on the rest.
     n_dist = 4 if fix_k3 else 5
     views = {(n, i) for n in names for i in detections[n]}
-    for attempt in range(3):
+
+    def setup():
         images = sorted({i for _, i in views})
         index = {i: k for k, i in enumerate(images)}
         problem = _Problem(len(names), images, n_dist)
-        x = problem.pack(Ks, dists, extr, {i: poses[i] for i in images})
         active = [
             (c, index[i], detections[n][i])
             for c, n in enumerate(names)
             for i in sorted(detections[n])
             if (n, i) in views
         ]
-        x, per_view = _bundle_adjust(problem, x, active)
-        Ks, dists, extr, fitted = problem.unpack(x)
-        poses.update(fitted)
-        bad = [
-            (names[c], images[i], _rms(r))
-            for (c, i, _), r in zip(active, per_view, strict=True)
-            if _rms(r) > max_view_rms
-        ]
-        if not bad or attempt == 2:
+        return images, index, problem, active
+
+    for _ in range(max(1, max_refits)):
+        images, index, problem, active = setup()
+        x = problem.pack(Ks, dists, extr, {i: poses[i] for i in images})
+        x, per_view = _bundle_adjust(problem, x, active, robust_scale=max_view_rms)
+        fitted = problem.unpack(x)
+        view_rms = [_rms(r) for r in per_view]
+        worst = max(view_rms)
+        if worst <= max_view_rms:
             break
-        for n, i, rms in bad:
-            rejected[n].append(
-                {"image": i, "reason": f"reprojection RMS {rms:.2f} px above {max_view_rms} px"}
-            )
-            views.discard((n, i))
-    for c, n in enumerate(names):
-        used = sum(1 for cc, _, _ in active if cc == c)
-        if used < min_images:
-            raise ValueError(
-                f"{where}only {used} views of {dirs[n]} fit the calibration "
-                f"(need {min_images}); see the rejected images"
-            )
+        for (c, i, _), rms in zip(active, view_rms, strict=True):
+            if rms > max_view_rms and rms >= 0.5 * worst:
+                rejected[names[c]].append(
+                    {
+                        "image": images[i],
+                        "reason": f"reprojection RMS {rms:.2f} px above {max_view_rms} px",
+                    }
+                )
+                views.discard((names[c], images[i]))
+        for n in names:
+            used = sum(1 for m, _ in views if m == n)
+            if used < min_images:
+                raise ValueError(
+                    f"{where}only {used} views of {dirs[n]} fit the calibration "
+                    f"(need {min_images}); views with reprojection RMS above "
+                    f"{max_view_rms} px were rejected"
+                )
+    images, index, problem, active = setup()
+    Kf, df, ef, pf = fitted
+    x, per_view = _bundle_adjust(problem, problem.pack(Kf, df, ef, pf), active)
     if reference not in index:
         raise ValueError(f"{where}the reference image {reference} was rejected (see the report)")
 

@@ -22,8 +22,8 @@ def register_bench(bench_subparsers) -> None:
     p = bench_subparsers.add_parser(
         "render",
         help="rasterize_surfels forward+backward timings (and accuracy vs brute force)",
-        description="Times forward + backward of rasterize_surfels on bubble scenes "
-        "(surfphase.render.scenes.bubble_scene) and reports median seconds, pair counts "
+        description="Times forward + backward of rasterize_surfels on sphere scenes "
+        "(surfphase.render.scenes.sphere_scene) and reports median seconds, pair counts "
         "and peak memory; --check also compares against the brute-force reference.",
     )
     p.add_argument(
@@ -101,9 +101,9 @@ def _time_run(size: int, n: int, args, device, dtype) -> dict:
     import torch
 
     from surfphase.render import rasterize_surfels
-    from surfphase.render.scenes import bubble_scene
+    from surfphase.render.scenes import sphere_scene
 
-    scene = bubble_scene(n, args.cameras, size, seed=0, dtype=dtype, device=device)
+    scene = sphere_scene(n, args.cameras, size, seed=0, dtype=dtype, device=device)
     names = ["means", "quats", "scales", "opacities", "colors"]
 
     def once() -> tuple[torch.Tensor, dict]:
@@ -171,11 +171,11 @@ def _check(device) -> dict:
 
     from surfphase.render import rasterize_surfels
     from surfphase.render.reference import rasterize_surfels_reference
-    from surfphase.render.scenes import bubble_scene
+    from surfphase.render.scenes import sphere_scene
 
     out = {}
     for dtype in (torch.float64, torch.float32):
-        scene = bubble_scene(60, 2, 48, seed=1, dtype=dtype, device=device)
+        scene = sphere_scene(60, 2, 48, seed=1, dtype=dtype, device=device)
         scene["width"], scene["height"] = 48, 40
         colors, alphas, meta = rasterize_surfels(**scene)
         ref = rasterize_surfels_reference(**scene)

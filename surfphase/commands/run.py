@@ -501,8 +501,9 @@ def build_run_command(args: argparse.Namespace) -> tuple[list[str], Path]:
         cmd += ["--jobs", str(args.jobs)]
     if args.dry_run:
         cmd += ["--dry-run"]
-    cmd += shlex.split(args.snakemake_args or "")
+    # Targets before the extra options: options such as --set-threads take several values.
     cmd += resolve_targets(snakefile, camp, list(args.targets), sessions)
+    cmd += shlex.split(args.snakemake_args or "")
     return cmd, camp
 
 

@@ -77,18 +77,30 @@ def _bench(args: argparse.Namespace) -> int:
 
     with tempfile.TemporaryDirectory(prefix="surfphase-bench-synth-") as tmp:
         out = args.out or Path(tmp) / "campaign"
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         write_campaign(out, preset=args.preset, seed=args.seed, overwrite=True, **_overrides(args))
-        wall = time.perf_counter() - t0
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         log = json.loads((out / "synth.json").read_text())
     result = {
         "bench": "synth",
         "preset": args.preset,
         "threads": args.threads,
         "wall_s": round(wall, 2),
+        "cpu_s": round(cpu, 2),
+        "load_avg_1min": round(os.getloadavg()[0], 2),
         "timings": log["timings"],
         "sessions": {
-            k: {kk: v[kk] for kk in ("seconds", "render_s", "truth_s")}
+            k: {
+                kk: v[kk]
+                for kk in (
+                    "seconds",
+                    "render_s",
+                    "truth_s",
+                    "merges",
+                    "visible_in_cam0_per_frame",
+                    "mesh_volume_error_pct",
+                )
+            }  # fmt: skip
             for k, v in log["sessions"].items()
         },
         "settings": log["settings"],

@@ -102,11 +102,16 @@ def prepare_demo(work: Path) -> dict:
 
 
 def heldout_psnr(out: Path, sess: Path, cams: dict, device: str) -> list[float]:
-    """PSNR (dB) of the fit rendered into the held-out ``mid`` camera, per frame."""
+    """PSNR (dB) of the fit rendered into the held-out ``mid`` camera, per frame.
+
+    The fit reconstructs the bubbles only; behind them the held-out view sees the mean of
+    the input views' background images (backlight and plate are not reconstructed).
+    """
     import cv2
 
     surfels = load_surfels(out / "surfels.npz")
     mid = cams["mid"]
+    bg = surfels["bg_images"].mean(axis=0, keepdims=True)
     vals = []
     for t, f in enumerate(surfels["frame"]):
         path = sess / "gt" / "views" / "mid" / f"{int(f):06d}.png"
@@ -114,7 +119,7 @@ def heldout_psnr(out: Path, sess: Path, cams: dict, device: str) -> list[float]:
             continue
         gt = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64)
         gt /= 65535.0 if gt.max() > 255 else 255.0
-        rgb = render_surfels(surfels, t, [mid], device)[0, ..., 0]
+        rgb = render_surfels(surfels, t, [mid], device, bg)[0, ..., 0]
         vals.append(psnr(rgb, gt))
     return vals
 
@@ -137,6 +142,7 @@ def evaluate(out: Path, sess: Path, cams: dict, device: str, max_dist: float) ->
         m = match_bubbles(pred[sel], gt, max_dist)
         res[f"velocity_error_{label}"] = velocity_error(m)
         res[f"matched_bubble_frames_{label}"] = int(m.dropna(subset=["vx"]).shape[0])
+        m.to_csv(out / f"velocity_matches_{label}.csv", index=False)
     res["gt_bubble_frames"] = int(gt[gt.frame.isin(pred.frame.unique())].shape[0])
     return res
 

@@ -73,7 +73,7 @@ def append_surfels(
 class NoDensify:
     """The strategy of every frame after the first: the surfel set never changes."""
 
-    def initialize_state(self, n: int) -> dict:
+    def initialize_state(self, n: int, device: torch.device | str = "cpu") -> dict:
         return {}
 
     def before_backward(self, info: dict) -> None:
@@ -121,8 +121,8 @@ class Densify2DGS:
         self.prune_scale = prune_scale
         self.max_surfels = max_surfels
 
-    def initialize_state(self, n: int) -> dict:
-        return {"grad2d": torch.zeros(n), "count": torch.zeros(n)}
+    def initialize_state(self, n: int, device: torch.device | str = "cpu") -> dict:
+        return {"grad2d": torch.zeros(n, device=device), "count": torch.zeros(n, device=device)}
 
     def before_backward(self, info: dict) -> None:
         m2d = info["means2d"]
@@ -185,7 +185,7 @@ class Densify2DGS:
             kids = {
                 k: v[split].repeat(2, *([1] * (v.dim() - 1))) for k, v in p.items() if v.dim() > 0
             }
-            z = torch.randn((2 * s.shape[0], 2), generator=generator, dtype=s.dtype)
+            z = torch.randn((2 * s.shape[0], 2), generator=generator, dtype=s.dtype).to(s.device)
             off2 = z * s.repeat(2, 1)
             off = torch.einsum("nij,nj->ni", rot.repeat(2, 1, 1)[:, :, :2], off2)
             kids["means"] = p["means"][split].repeat(2, 1) + off
@@ -195,7 +195,7 @@ class Densify2DGS:
             new = {k: torch.cat([new[k], kids[k]], dim=0) for k in new}
         if new["means"].shape[0]:
             append_surfels(model, optimizer, new)
-        keep = torch.ones(model.n, dtype=torch.bool)
+        keep = torch.ones(model.n, dtype=torch.bool, device=model.means.device)
         keep[:n_before][split] = False
         # Prune what is nearly transparent or far too large.
         op = model.opacities().detach()
@@ -204,5 +204,5 @@ class Densify2DGS:
         if keep.sum() < 1:
             keep[torch.argmax(op)] = True
         select_surfels(model, optimizer, keep)
-        state.update(self.initialize_state(model.n))
+        state.update(self.initialize_state(model.n, model.means.device))
         return True

@@ -276,7 +276,7 @@ def fit_frame(
     logged curve rows."""
     C, H, W, D = observed.shape
     opt = make_optimizer(model, p)
-    state = strategy.initialize_state(model.n)
+    state = strategy.initialize_state(model.n, model.means.device)
     rows = []
     base_lr = p["lr_means"] * model.extent
     for it in range(iters):

@@ -15,10 +15,11 @@ Instances come from a segmentation backend as per-camera label stacks
    plate: it belongs to bubble 0, the nucleation region.
 3. **Through time, per view.** Free instances are tracked frame to frame: each
    track's mask is shifted by its last displacement (constant velocity) and matched
-   to the next frame's instances by mask IoU (Hungarian). An instance covering two
-   or more tracks' predicted masks is a *merge*; two or more instances covering one
-   track's is a *split*; both end the old tracks and start new ones, and are
-   recorded as events. A track starting on the nucleation region is a *detach*.
+   to the next frame's instances by mask IoU (Hungarian). A track hidden behind
+   another (silhouettes fused in this view) coasts a few frames and takes its id
+   back when it reappears; one that never does has *merged* into the track that
+   covered it, which carries on. A new track born inside a track's previous mask is
+   a *split*; one born on the nucleation region is a *detach*. Events are recorded.
 4. **Tracks into bubbles.** Two tracks of different views are linked when they
    were paired in enough of their common frames; links are made strongest first,
    never joining two tracks of one view that coexist in time. Each linked group is
@@ -48,6 +49,8 @@ ASSOCIATE_DEFAULTS: dict = {
     "nucleation_margin_frac": 0.02,
     # Frame-to-frame: minimum IoU of a track's predicted mask with the next instance.
     "track_iou_min": 0.2,
+    # A track unseen for up to this many frames (hidden behind another) may come back.
+    "coast_frames": 8,
     # Merge/split: an overlap counts when it covers this fraction of the smaller mask.
     "event_overlap_frac": 0.25,
     # Cross-view link: paired in at least this fraction of the common frames.
@@ -188,82 +191,124 @@ def track_view(labels: np.ndarray, inst: pd.DataFrame, attached: set[tuple[int, 
                params: Mapping) -> Tracks:
     """Track the free (non-attached) instances of one view through time.
 
+    Every track predicts its mask in the next frame by shifting its last mask by its
+    last displacement per frame (times the frames since it was last seen). Current
+    instances are matched to the predictions by IoU (Hungarian, ``track_iou_min``).
+    A track left unmatched *coasts* for up to ``coast_frames`` frames: a bubble
+    hidden behind another in this view (their silhouettes fused into one instance)
+    takes its id back when it reappears. Events:
+
+    * ``merge`` — a track that stopped while its predicted mask lay under another
+      track's instance and never came back within ``coast_frames``: from the frame
+      it stopped, the covering instance is a new track (the merged bubble);
+    * ``split`` — a new track born inside the previous mask of a track;
+    * ``detach`` — a new track born touching the nucleation region (parent −1).
+
     Args:
         labels: (T, H, W) label stack of the view (−1 background).
         inst: this view's rows of :func:`instance_table`.
         attached: ``(frame, local)`` of instances in the nucleation region.
 
     Returns:
-        :class:`Tracks`; events are ``(frame, kind, parent tracks, child tracks)``
-        with kind ``merge``, ``split`` or ``detach`` (parent ``-1`` = bubble 0).
+        :class:`Tracks`; events are ``(frame, kind, parent tracks, child tracks)``.
     """
     tr = Tracks()
     by_frame = {t: g for t, g in inst.groupby("frame")}
-    last_pos: dict[int, np.ndarray] = {}
-    vel: dict[int, np.ndarray] = {}
     frac = params["event_overlap_frac"]
-    prev_frame_tracks: list[tuple[int, int]] = []
+    coast = int(params["coast_frames"])
+    h, w = labels.shape[1:]
+    # Per track: last frame seen, last mask pixels (ys, xs), last centroid, velocity.
+    last: dict[int, tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = {}
+    hidden_by: dict[int, tuple[int, int]] = {}  # track → (frame it vanished, covering track)
     for t in range(labels.shape[0]):
-        cur_rows = by_frame.get(t)
         cur = np.asarray(labels[t])
+        rows = by_frame.get(t)
+        free = [] if rows is None else [int(i) for i in rows.local if (t, int(i)) not in attached]
         n_cur = int(cur.max()) + 1
-        free = [] if cur_rows is None else [
-            int(i) for i in cur_rows.local if (t, int(i)) not in attached]
         cur_area = np.bincount(cur[cur >= 0].ravel(), minlength=max(n_cur, 1))
-        cent = {} if cur_rows is None else {
-            int(r.local): np.array([r.cx, r.cy]) for r in cur_rows.itertuples()}
-        prev_tracks = prev_frame_tracks  # (local in t − 1, track)
+        cent = {} if rows is None else {int(r.local): np.array([r.cx, r.cy])
+                                        for r in rows.itertuples()}
+        cands = [k for k, v in last.items() if t - v[0] <= coast]
         assigned: dict[int, int] = {}
-        if prev_tracks and free:
-            prev = np.asarray(labels[t - 1])
-            shifts = [vel.get(tid, np.zeros(2)) for _, tid in prev_tracks]
-            ov = _shifted_overlap(prev, [p for p, _ in prev_tracks], shifts, cur, n_cur)
-            prev_area = np.array([(prev == p).sum() for p, _ in prev_tracks])
-            ov = ov[:, free]
+        ov = np.zeros((len(cands), len(free)), np.int64)
+        pred_area = np.zeros(len(cands), np.int64)
+        for r, k in enumerate(cands):
+            f0, ys, xs, _, vel = last[k]
+            d = vel * (t - f0)
+            yy = np.round(ys + d[1]).astype(int)
+            xx = np.round(xs + d[0]).astype(int)
+            ok = (yy >= 0) & (yy < h) & (xx >= 0) & (xx < w)
+            pred_area[r] = max(int(ok.sum()), 1)
+            hit = cur[yy[ok], xx[ok]]
+            cnt = np.bincount(hit[hit >= 0], minlength=max(n_cur, 1))
+            ov[r] = cnt[free] if free else []
+        if cands and free:
             ca = cur_area[free]
-            iou = ov / np.maximum(prev_area[:, None] + ca[None] - ov, 1)
-            small = np.minimum(prev_area[:, None], ca[None])
-            cover = ov / np.maximum(small, 1) >= frac
-            # Merges: a current instance covering ≥ 2 tracks; splits: a track ≥ 2 instances.
-            merged_cols = {j for j in range(len(free)) if cover[:, j].sum() >= 2}
-            split_rows = {i for i in range(len(prev_tracks)) if cover[i].sum() >= 2}
-            for j in merged_cols:
-                parents = [prev_tracks[i][1] for i in np.flatnonzero(cover[:, j])]
-                child = tr.new()
-                assigned[free[j]] = child
-                tr.events.append((t, "merge", parents, [child]))
-            for i in split_rows:
-                kids = [free[j] for j in np.flatnonzero(cover[i]) if free[j] not in assigned]
-                if len(kids) < 2:
-                    continue
-                children = []
-                for k in kids:
-                    assigned[k] = tr.new()
-                    children.append(assigned[k])
-                tr.events.append((t, "split", [prev_tracks[i][1]], children))
-            rows_ok = [i for i in range(len(prev_tracks)) if i not in split_rows
-                       and not any(cover[i, j] for j in merged_cols)]
-            cols_ok = [j for j in range(len(free)) if free[j] not in assigned]
-            if rows_ok and cols_ok:
-                sub = iou[np.ix_(rows_ok, cols_ok)]
-                rr, cc = linear_sum_assignment(-sub)
-                for r, c in zip(rr, cc, strict=True):
-                    if sub[r, c] >= params["track_iou_min"]:
-                        assigned[free[cols_ok[c]]] = prev_tracks[rows_ok[r]][1]
+            iou = ov / np.maximum(pred_area[:, None] + ca[None] - ov, 1)
+            # A track seen in the previous frame is a surer match than one coasting.
+            gap = np.array([t - last[k][0] for k in cands], np.float64)
+            rr, cc = linear_sum_assignment(-iou * 0.5 ** (gap[:, None] - 1))
+            for r, c in zip(rr, cc, strict=True):
+                if iou[r, c] >= params["track_iou_min"]:
+                    assigned[free[c]] = cands[r]
+        prev_lab = np.asarray(labels[t - 1]) if t > 0 else None
         prev_attached = [loc for (f, loc) in attached if f == t - 1]
-        for loc in free:
+        for c, loc in enumerate(free):
             if loc in assigned:
                 continue
             tid = tr.new()
             assigned[loc] = tid
-            if prev_attached and _touches(np.asarray(labels[t - 1]), prev_attached, cur == loc):
+            mask = cur == loc
+            # Born inside a track's previous mask: a split; on the plate: a detach.
+            if cands:
+                cover = ov[:, c] / max(int(cur_area[loc]), 1)
+                r = int(np.argmax(cover))
+                if cover[r] >= frac and last[cands[r]][0] == t - 1:
+                    tr.events.append((t, "split", [cands[r]], [tid]))
+                    continue
+            if prev_attached and _touches(prev_lab, prev_attached, mask):
                 tr.events.append((t, "detach", [-1], [tid]))
-        prev_frame_tracks = sorted(assigned.items())
+        by_track = {tid: loc for loc, tid in assigned.items()}
+        # Tracks lost this frame: note which instance covers their predicted mask.
+        for r, k in enumerate(cands):
+            if k in by_track or k in hidden_by or not free:
+                continue
+            c = int(np.argmax(ov[r]))
+            if ov[r, c] >= frac * min(pred_area[r], cur_area[free[c]]):
+                hidden_by[k] = (t, assigned[free[c]])
+        for k in list(hidden_by):
+            if k in by_track:
+                del hidden_by[k]  # it came back: an occlusion, not a merge
+            elif t - hidden_by[k][0] >= coast or t == labels.shape[0] - 1:
+                # Hidden for good (or still hidden when the video ends).
+                f, other = hidden_by.pop(k)
+                # A merge: from frame f on, the surviving instance is a new bubble.
+                merged = tr.new()
+                for key, tid in tr.track_of.items():
+                    if tid == other and key[0] >= f:
+                        tr.track_of[key] = merged
+                for loc, tid in assigned.items():
+                    if tid == other:
+                        assigned[loc] = merged
+                if other in last:
+                    last[merged] = last.pop(other)
+                for kk, (ff, oo) in hidden_by.items():
+                    if oo == other and ff >= f:
+                        hidden_by[kk] = (ff, merged)
+                tr.events = [
+                    (ef, kind, [merged if (q == other and ef >= f) else q for q in par],
+                     [merged if (q == other and ef >= f) else q for q in kids])
+                    for ef, kind, par, kids in tr.events]
+                tr.events.append((f, "merge", [k, other], [merged]))
         for loc, tid in assigned.items():
             tr.track_of[(t, loc)] = tid
+            ys, xs = np.nonzero(cur == loc)
             c = cent[loc]
-            vel[tid] = c - last_pos[tid] if tid in last_pos else np.zeros(2)
-            last_pos[tid] = c
+            vel = np.zeros(2)
+            if tid in last and last[tid][0] < t:
+                vel = (c - last[tid][3]) / (t - last[tid][0])
+            last[tid] = (t, ys, xs, c, vel)
+    tr.events.sort(key=lambda e: e[0])
     return tr
 
 
@@ -415,10 +460,16 @@ def associate(
     instances = inst[["frame", "camera", "bubble", "area", "cx", "cy", "x0", "y0", "x1", "y1",
                       "score"]].sort_values(["frame", "camera", "bubble"], kind="stable")
     ev_rows = []
+    def bubble_id(c: str, q: int) -> int:
+        return 0 if q < 0 else bubble_of_group.get(find((c, q)), -1) if (c, q) in parent else -1
+
     for c in names:
         for t, kind, par, kids in tracks[c].events:
-            pb = [0 if q < 0 else bubble_of_group[find((c, q))] for q in par]
-            kb = [bubble_of_group[find((c, q))] for q in kids]
+            # Tracks with no frame left (renamed by a later merge) drop out.
+            pb = [b for b in (bubble_id(c, q) for q in par) if b >= 0]
+            kb = [b for b in (bubble_id(c, q) for q in kids) if b >= 0]
+            if not kb:
+                continue
             ev_rows.append((t, c, kind, "+".join(map(str, pb)), "+".join(map(str, kb))))
     events = pd.DataFrame(ev_rows, columns=["frame", "camera", "event", "parents", "children"])
     return out_labels, instances.reset_index(drop=True), events

@@ -47,7 +47,7 @@ CLASSICAL_DEFAULTS: dict = {
     "static_notch_frac": 0.35,
     # On the plate, a reference pixel this far (fraction) from the along-edge median
     # is a bubble persisting at a nucleation site, not the plate.
-    "static_outlier_frac": 0.4,
+    "static_outlier_frac": 0.25,
     # Edge of a bubble in front of the static structure, relative contrast.
     "static_edge": 0.25,
     # Where the background itself is darker than this (black plate sides), nothing is seen.
@@ -92,15 +92,16 @@ def _poly_design(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
     return np.stack(cols, axis=-1)
 
 
-def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 6) -> np.ndarray:
+def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3) -> np.ndarray:
     """Smooth background of a (H, W) float image whose objects are darker than it.
 
-    A 2D polynomial of total ``degree`` in the normalised pixel coordinates is fitted
-    by least squares to a ≤64×64 area-downsampled copy, starting from the pixels
-    brighter than 0.6 × the 95th percentile; pixels more than 2.5 robust
-    standard deviations *below* the fit (the bubbles) are excluded and the fit is
-    repeated. Uneven illumination and vignetting are smooth, so a low degree follows
-    them without bending into the bubbles. Returns (H, W) float32.
+    On a ≤64×64 area-downsampled copy, object pixels are those more than 20 % darker
+    than a grey closing of 30 % of the shorter side (dark things narrower than that:
+    bubbles) or darker than 0.6 × the 95th percentile (the plate); a 2D polynomial of total ``degree`` in normalised
+    pixel coordinates is fitted by least squares to the others, then refitted without
+    the pixels that stay clearly (2.5 robust σ and 5 %) below it. Vignetting and
+    uneven illumination are smooth and broad, so they are followed, not rejected.
+    Returns (H, W) float32.
     """
     h, w = image.shape
     f = min(1.0, 64.0 / max(h, w))
@@ -110,9 +111,12 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 6)
     ys, xs = np.mgrid[0:sh, 0:sw]
     A = _poly_design((xs.ravel() + 0.5) / sw * 2 - 1, (ys.ravel() + 0.5) / sh * 2 - 1, degree)
     b = small.ravel().astype(np.float64)
-    # Start from the pixels not far below the bright level: large dark structures
-    # (the plate) would otherwise pull the first fit down towards them.
-    keep = b > 0.6 * np.percentile(b, 95)
+    k = max(3, int(0.3 * min(sh, sw)) | 1)
+    closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8),
+                              borderType=cv2.BORDER_REPLICATE)
+    # Large dark structures (the plate, dark to the border) fail the second test.
+    local = (small >= 0.8 * closed).ravel() & (b > 0.6 * np.percentile(b, 95))
+    keep = local.copy()
     if keep.sum() < A.shape[1] * 3:
         keep = np.ones(b.size, bool)
     coef = np.zeros(A.shape[1])
@@ -122,7 +126,7 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 6)
         coef = np.linalg.solve(Ak.T @ Ak + 1e-9 * np.eye(A.shape[1]), Ak.T @ b[keep])
         r = b - A @ coef
         sigma = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep]))) + 1e-6
-        new_keep = r > -2.5 * sigma
+        new_keep = local & (r > -np.maximum(2.5 * sigma, 0.05 * np.abs(A @ coef)))
         if new_keep.sum() < A.shape[1] * 3 or np.array_equal(new_keep, keep):
             break
         keep = new_keep
@@ -207,8 +211,7 @@ def static_background(reference: np.ndarray, params: Mapping | None = None
     vv = edge[None, :] + np.arange(depth)[:, None]
     valid = vv < h
     uu = np.broadcast_to(np.arange(w)[None, :], vv.shape)
-    smooth_ref = cv2.GaussianBlur(ref, (0, 0), 0.7)
-    band = np.where(valid, smooth_ref[np.minimum(vv, h - 1), uu], np.nan)
+    band = np.where(valid, ref[np.minimum(vv, h - 1), uu], np.nan)
     padded = np.pad(band, ((0, 0), (win // 2, win // 2)), constant_values=np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(padded, win, axis=1)
     with warnings.catch_warnings():
@@ -218,6 +221,12 @@ def static_background(reference: np.ndarray, params: Mapping | None = None
     # The reference is the background, except where it departs strongly from its
     # along-edge median: bubbles that never left the nucleation sites.
     outlier = np.abs(band - med) > p["static_outlier_frac"] * np.maximum(med, 1e-3)
+    # Only departures reaching the edge: bubbles sit *on* the plate, whereas the
+    # plate's own lower features (its black sides) do not follow the edge.
+    out_lab, n_out = ndi.label(outlier)
+    if n_out:
+        touching = np.unique(out_lab[:4][out_lab[:4] > 0])
+        outlier = np.isin(out_lab, touching)
     outlier = ndi.binary_dilation(outlier, np.ones((3, 3), bool))
     band_bg = np.where(outlier, med, band)
     bg = light.copy()

@@ -26,6 +26,8 @@ from collections.abc import Mapping
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from surfphase.cameras import Camera
+
 
 def _overlaps(gt: np.ndarray, pred: np.ndarray):
     """Ids and pixel counts: truth ids, pred ids, (G, P) intersections, areas."""
@@ -122,7 +124,7 @@ def mask_metrics(gt: Mapping[str, np.ndarray], pred: Mapping[str, np.ndarray],
             agree += int(assigned[(b, t, g)] == pid)
     # Temporal identity over each truth bubble's free life, per view.
     seqs: dict[tuple[str, int], list[int]] = {}
-    for (c, t, g), pid in sorted(assigned.items(), key=lambda kv: kv[0][1]):
+    for (c, _t, g), pid in sorted(assigned.items(), key=lambda kv: kv[0][1]):
         if pid != 0:
             seqs.setdefault((c, g), []).append(pid)
     fracs = [Counter(s).most_common(1)[0][1] / len(s) for s in seqs.values()]
@@ -143,3 +145,53 @@ def mask_metrics(gt: Mapping[str, np.ndarray], pred: Mapping[str, np.ndarray],
         else float("nan"),
         "tracked_bubbles": len(fracs),
     }
+
+
+def warp_labels(labels: np.ndarray, src: Camera, dst: Camera, supersample: int = 4
+                ) -> np.ndarray:
+    """Resample label stacks seen by camera ``src`` onto the pixel grid of ``dst``.
+
+    Both cameras must share their centre (same pose, e.g. a raw distorted camera and
+    its undistorted, cropped, scaled version). Each ``dst`` pixel is split into
+    ``supersample``² sub-pixels; each sub-pixel's ray is projected into ``src``
+    (with its distortion) and takes the nearest label; the pixel gets the most
+    frequent one (ties: the lowest id, background −1 included).
+
+    Args:
+        labels: (T, H_src, W_src) int labels of ``src``.
+
+    Returns:
+        (T, H_dst, W_dst) int32.
+    """
+    if np.linalg.norm(src.center - dst.center) > 1e-9 * max(1.0, np.linalg.norm(src.center)):
+        raise ValueError(f"cameras {src.name} and {dst.name} do not share their centre")
+    s = int(supersample)
+    off = (np.arange(s) + 0.5) / s - 0.5
+    v, u = np.mgrid[0:dst.height, 0:dst.width].astype(np.float64)
+    shape = (dst.height, dst.width, s, s)
+    uu = np.broadcast_to(u[..., None, None] + off[None, None, None, :], shape).ravel()
+    vv = np.broadcast_to(v[..., None, None] + off[None, None, :, None], shape).ravel()
+    rays = dst.pixel_rays(np.stack([uu, vv], axis=1), distorted=False)
+    pts = src.center + rays  # one metre along each ray: projects like the ray itself
+    uv = src.project(pts, distort=True)
+    iu = np.round(uv[:, 0]).astype(np.int64)
+    iv = np.round(uv[:, 1]).astype(np.int64)
+    inside = (iu >= 0) & (iu < src.width) & (iv >= 0) & (iv < src.height)
+    iu = np.clip(iu, 0, src.width - 1)
+    iv = np.clip(iv, 0, src.height - 1)
+    out = np.empty((labels.shape[0], dst.height, dst.width), np.int32)
+    for t in range(labels.shape[0]):
+        samp = np.where(inside, np.asarray(labels[t])[iv, iu], -1).reshape(-1, s * s)
+        # Most frequent label per pixel: sort each row, count runs.
+        srt = np.sort(samp, axis=1)
+        best = srt[:, 0].copy()
+        best_n = np.ones(srt.shape[0], np.int64)
+        run = np.ones(srt.shape[0], np.int64)
+        for k in range(1, s * s):
+            same = srt[:, k] == srt[:, k - 1]
+            run = np.where(same, run + 1, 1)
+            better = run > best_n
+            best = np.where(better, srt[:, k], best)
+            best_n = np.where(better, run, best_n)
+        out[t] = best.reshape(dst.height, dst.width)
+    return out

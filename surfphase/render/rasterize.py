@@ -14,11 +14,20 @@ Semantics follow 2D Gaussian Splatting (Huang et al. 2024):
   surfel would bring its transmittance under ``1e-4`` (that surfel is not blended).
 
 Pixels follow DESIGN.md: pixel ``(u, v)`` has its centre at integer coordinates.
-Unlike 2DGS's tile rasterizer (whose footprint cut-off depends on 16×16 tiles), the
-support here is the exact ``ρ ≤ 9`` region, so results do not depend on tiling.
+Differences from 2DGS's CUDA rasterizer, on purpose: its footprint cut-off depends on
+16×16 tiles, here the support is exactly ``ρ ≤ 9`` so results do not depend on tiling;
+the low-pass term is centred on the projected surfel centre (2DGS: the centre of the
+projected 3σ ellipse's box, which differs slightly under perspective).
+
+Backends: ``backend`` names an entry of :data:`BACKENDS`, a function with the signature
+of :func:`surfphase.render.sparse.rasterize_sparse` returning the same raw
+accumulations; :func:`finish_outputs` turns those into the public outputs, so a fused
+(e.g. Triton) backend only has to produce per-pixel sums and per-surfel buffers.
 """
 
 from __future__ import annotations
+
+import importlib
 
 import torch
 from torch import Tensor
@@ -26,7 +35,8 @@ from torch import Tensor
 from surfphase.cameras import Camera
 from surfphase.render.projection import DEFAULT_LOW_PASS
 
-BACKENDS = ("torch",)
+#: Backend name → ``"module:function"`` (imported on first use).
+BACKENDS = {"torch": "surfphase.render.sparse:rasterize_sparse"}
 
 
 def rasterize_surfels(
@@ -64,7 +74,7 @@ def rasterize_surfels(
         max_pairs_per_chunk: memory bound: images are processed in bands of rows holding
             at most this many candidate (pixel, surfel) pairs (at least one row per band);
             with several bands each is recomputed in the backward pass (checkpointing).
-            Roughly 150 bytes (float32) per pair are alive at the peak of a band.
+            In float32 a band's peak is roughly 250 (CUDA) to 400 (CPU) bytes per pair.
         backend: ``"torch"`` (sparse pure PyTorch, CPU or CUDA). Other backends (e.g. a
             fused Triton kernel) slot in here with the same inputs and outputs.
 
@@ -83,7 +93,9 @@ def rasterize_surfels(
         * ``normals_world`` (C, H, W, 3): the same in the world frame;
         * ``normals_from_depth`` (C, H, W, 3): **camera frame**, unit normals of the
           surface through the back-projected ``depth_expected`` points, from central
-          differences, oriented towards the camera; zero on the one-pixel border;
+          differences, oriented towards the camera; zero on the one-pixel border; where
+          alpha is 0 the point collapses onto the camera centre, so, as in 2DGS, weight
+          these normals by alpha (or mask them) near silhouettes;
         * ``normals_from_depth_world`` (C, H, W, 3): the same in the world frame;
         * ``distortion`` (C, H, W, 1): 2DGS depth distortion
           Σ_i Σ_{j<i} w_i w_j (m_i − m_j)², with ``m = far/(far−near)·(1 − near/z)``;
@@ -102,11 +114,13 @@ def rasterize_surfels(
         raise ValueError(f"rasterize_surfels: low_pass must be ≥ 0, got {low_pass}")
     if max_pairs_per_chunk < 1:
         raise ValueError("rasterize_surfels: max_pairs_per_chunk must be ≥ 1")
-    if backend != "torch":
-        raise ValueError(f"rasterize_surfels: unknown backend {backend!r}; known: {BACKENDS}")
-    from surfphase.render.sparse import rasterize_sparse
-
-    out = rasterize_sparse(
+    if backend not in BACKENDS:
+        raise ValueError(
+            f"rasterize_surfels: unknown backend {backend!r}; known: {', '.join(BACKENDS)}"
+        )
+    module, func = BACKENDS[backend].split(":")
+    backend_fn = getattr(importlib.import_module(module), func)
+    out = backend_fn(
         means,
         quats,
         scales,

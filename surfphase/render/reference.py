@@ -9,6 +9,7 @@ with the same culling, 1/255 skip, 0.99 cap and 1e-4 termination rules.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -143,20 +144,20 @@ def rasterize_surfels_reference(
 def _normals_from_depth(depth: Tensor, Ks: Tensor) -> Tensor:
     """Per-pixel loop version of the depth-normal rule (camera frame, facing the camera)."""
     C, H, W, _ = depth.shape
-    out = torch.zeros(C, H, W, 3, dtype=depth.dtype, device=depth.device)
+    d = depth.detach().cpu().numpy()
+    out = np.zeros((C, H, W, 3), dtype=d.dtype)
     for c in range(C):
-        Kinv = torch.linalg.inv(Ks[c])
+        Kinv = np.linalg.inv(Ks[c].detach().cpu().numpy().astype(d.dtype))
 
-        def point(y: int, x: int, c: int = c, Kinv: Tensor = Kinv) -> Tensor:
-            pix = torch.tensor([float(x), float(y), 1.0], dtype=depth.dtype, device=depth.device)
-            return depth[c, y, x, 0] * (Kinv @ pix)
+        def point(y: int, x: int, c: int = c, Kinv: np.ndarray = Kinv) -> np.ndarray:
+            return d[c, y, x, 0] * (Kinv @ np.array([x, y, 1.0], dtype=d.dtype))
 
         for y in range(1, H - 1):
             for x in range(1, W - 1):
                 down = point(y + 1, x) - point(y - 1, x)
                 right = point(y, x + 1) - point(y, x - 1)
-                n = torch.linalg.cross(down, right)
-                norm = n.norm()
+                n = np.cross(down, right)
+                norm = np.linalg.norm(n)
                 if norm > 0:
                     out[c, y, x] = n / norm
-    return out
+    return torch.from_numpy(out).to(depth.device)

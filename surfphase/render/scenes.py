@@ -1,8 +1,8 @@
 """Small deterministic surfel scenes for the renderer's tests and benchmarks.
 
 These are not the synthetic campaign's ground truth (that is :mod:`surfphase.synth`);
-they are just plausible inputs: surfels tangent to a few bubble-sized spheres seen by
-cameras placed like the reference rig's inputs.
+they are just plausible inputs: surfels tangent to a few millimetre-sized spheres seen
+by cameras placed like the reference rig's inputs.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from surfphase.cameras import look_at
 from surfphase.render.rasterize import camera_tensors
 
 
-def bubble_scene(
+def sphere_scene(
     n_surfels: int,
     n_cameras: int = 2,
     size: int = 128,
@@ -28,8 +28,9 @@ def bubble_scene(
 
     Cameras look at the scene centre from 35° steps in azimuth, focal length
     ``1800·size/512`` px (the synthetic rig's). Surfel standard deviations are about 0.6
-    of the mean spacing on the spheres, so most pixels of a bubble see 10–30 surfels,
-    as a fitted scene does. Returns the keyword arguments of ``rasterize_surfels``.
+    of the mean spacing on the spheres, so a covered pixel meets about 30 candidate
+    surfels (front and back of a sphere), as a fitted scene does. Returns the keyword
+    arguments of ``rasterize_surfels``.
     """
     g = torch.Generator().manual_seed(seed)
     centres = torch.tensor(

@@ -1,12 +1,15 @@
 """Sparse pure-PyTorch backend of :func:`surfphase.render.rasterize_surfels`.
 
-Instead of every pixel against every surfel, only the (pixel, surfel) pairs inside each
-surfel's screen bounding box are generated (``repeat_interleave`` / ``arange``
-arithmetic), those that cannot contribute are dropped without autograd, the rest are
-sorted by one int64 key (pixel, depth rank), and blended with segmented prefix sums
-(transmittance in log space) and ``index_add_`` scatters. Images are split into bands
-of rows so that no band holds more than ``max_pairs_per_chunk`` candidate pairs; with
-several bands each is checkpointed, so memory stays bounded in the backward pass too.
+Instead of every pixel against every surfel, only the (pixel, surfel) pairs that can
+contribute are generated: for each visible surfel and each row of its screen box, the
+x-range where ``ρ ≤ min(9, 2 ln(255·o))`` (beyond it α < 1/255) is solved in closed
+form (a conic and a disk), and pairs are laid out with ``repeat_interleave`` /
+``arange`` arithmetic. Surfels are enumerated in (camera, depth) order, so one stable
+int64 sort by pixel index gives (pixel, depth) order. Blending uses segmented prefix
+sums (log-transmittance, float64) and ``index_add`` scatters; the exact per-pair tests
+(support, near plane, 1/255, termination) are masks. Images are split into bands of
+rows holding at most ``max_pairs_per_chunk`` candidate pairs; with several bands each
+is checkpointed (recomputed in backward), so memory stays bounded in backward too.
 """
 
 from __future__ import annotations
@@ -45,9 +48,10 @@ def rasterize_sparse(
 ) -> dict[str, Tensor]:
     """Render; returns raw accumulations (see :func:`surfphase.render.rasterize_surfels`).
 
-    Output dict: ``n_pairs`` candidate (pixel, surfel) pairs processed; ``accum`` (C, H, W, D + 6) = Σw·colour (D), Σw, Σw·z, Σw·n_cam (3),
-    distortion; ``depth_median`` (C, H, W, 1); ``means2d``, ``radii``, ``visible``,
-    ``normals_camera`` per surfel.
+    Output dict: ``n_pairs`` (int) candidate (pixel, surfel) pairs processed;
+    ``accum`` (C, H, W, D + 6) = Σw·colour (D), Σw, Σw·z, Σw·n_cam (3), distortion;
+    ``depth_median`` (C, H, W, 1); per surfel ``means2d`` (C, N, 2), ``radii`` and
+    ``visible`` (C, N).
     """
     C, N = viewmats.shape[0], means.shape[0]
     D = colors.shape[1]
@@ -167,7 +171,7 @@ def _render_band(
     feats: Tensor,
     vis_idx: Tensor,
     vbox: Tensor,
-    span: Tensor,
+    span: list[Tensor],
     y0: int,
     y1: int,
     consts: tuple,
@@ -176,8 +180,8 @@ def _render_band(
     """Composite rows [y0, y1) of every camera → ((C, y1−y0, W, D+6), (C, y1−y0, W, 1)).
 
     ``feats`` (17 + D, C·N) packed per-(camera, surfel) features; ``vis_idx`` (S,) the
-    visible ones in (camera, depth) order, ``vbox`` (S, 4) their boxes, ``span`` (S, 12)
-    float64 coefficients bounding each row's pixels (:func:`_span_coefficients`).
+    visible ones in (camera, depth) order, ``vbox`` (S, 4) their boxes, ``span`` nine (S,)
+    float64 columns bounding each row's pixels (:func:`_span_coefficients`).
     The number of candidate pairs is appended to ``n_pairs``.
     """
     C, n_surf, W, D, near, far, inv_lp2, low_pass = consts

@@ -23,13 +23,16 @@ Life cycle of a bubble (one :class:`Bubble`):
   new bubble is born there with their summed nominal volume and their
   volume-weighted centre and velocity; for :data:`COALESCE` seconds it is the smooth
   union of two lobes sliding into one sphere, then it oscillates strongly.
+  ``force_merge`` arranges one inside the clip by wake capture: a follower from the
+  same site grows twice as fast and rises 1.4× faster than its leader (up to
+  ≈ 0.4 m/s) until they touch.
 
 The field: each lobe is ``ρ − R(1 + δ(u))`` (ρ distance to the lobe centre); a
 bubble's lobes are joined by a polynomial smooth minimum, and the scene is the
 polynomial smooth minimum (:data:`K_SCENE`: thin films bridge just before contact)
 of the two smallest bubble fields at each point, cut by the plate:
 ``scene = max(smin(d_(1), d_(2)), −y)``. It is a distance *bound* with slope ≤
-~1.3 (the shape modes), so sphere tracing steps by a fraction of it.
+~1.1 (the shape modes), so sphere tracing steps by 0.9 of it.
 
 Bubble identity in the truth: a point belongs to the bubble whose own field is
 smallest there (:meth:`FrameState.sdf_and_label`), which partitions the vapour
@@ -223,7 +226,9 @@ class FrameState:
     @property
     def bound_radii(self) -> np.ndarray:
         """(L,) radius (m) of a sphere about each lobe centre that contains the lobe."""
-        return self.radii * (1 + np.abs(self.amps).sum(axis=1)) + K_SCENE
+        # smin lowers a field by at most k/4 (between bubbles and between lobes).
+        k_int = self.k_internal[self.lobe_bubble] if len(self.radii) else 0.0
+        return self.radii * (1 + np.abs(self.amps).sum(axis=1)) + 0.25 * (K_SCENE + k_int)
 
     def subset(self, bubble_index: np.ndarray) -> FrameState:
         """The same frame restricted to the bubbles ``ids[bubble_index]``."""
@@ -470,7 +475,7 @@ class BubbleScene:
     def _force_merge(self) -> bool:
         """Make a trailing bubble rise in its leader's wake and catch it inside the clip.
 
-        The follower grows twice as fast, accelerates sooner and rises 1.6× faster
+        The follower grows twice as fast, accelerates sooner and rises 1.4× faster
         (wake entrainment); its birth time is chosen so that the nominal spheres
         touch at a time in the middle of the clip, after the follower has detached.
         Returns False (scene unchanged) when no leader/follower pair allows it.
@@ -488,7 +493,7 @@ class BubbleScene:
                     saved_b = (b.u_term, b.tau_acc, b.wobble_amp)
                     t_grow = 0.5 * (b.t_detach - b.t_birth)
                     b.u_term = a.u_term.copy()
-                    b.u_term[1] = 1.6 * a.u_term[1]
+                    b.u_term[1] = 1.4 * a.u_term[1]
                     b.tau_acc = 0.4 * a.tau_acc
                     b.wobble_amp = a.wobble_amp * 0.2
 

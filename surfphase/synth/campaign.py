@@ -14,7 +14,8 @@ Layout under ``out`` (paths in the TSVs are relative to the TSV's folder)::
                                        mid, orbit01..11 at fit size, no distortion),
                                        top-level "fps" and "fit_scale"
     <session>/gt/bubbles.csv           frame, bubble, x, y, z (m), vx, vy, vz (m/s), r_eq (m)
-    <session>/gt/merges.csv            t (s), frame (first frame after), parent_a, parent_b, merged
+    <session>/gt/merges.csv            t (s), frame (first frame showing the merged bubble),
+                                       parent_a, parent_b, merged (bubble ids)
     <session>/gt/meshes/000000.ply     true surface per frame, metres (binary PLY)
     <session>/gt/views/<cam>/000000.png  held-out views at fit size
     <session>/gt/masks/<cam>.npy       int32 (frames, H, W) at the raw videos' native size:
@@ -44,7 +45,7 @@ from surfphase.cameras import save_cameras
 from surfphase.io import save_npy
 from surfphase.synth import charuco, shadowgraph
 from surfphase.synth.bubbles import BubbleScene
-from surfphase.synth.groundtruth import bubble_table, frame_truth, write_ply
+from surfphase.synth.groundtruth import bubble_table, frame_truth, mesh_volume, write_ply
 from surfphase.synth.monoclips import write_clip, write_png
 from surfphase.synth.rig import default_rig
 
@@ -151,7 +152,7 @@ def _write_session(sdir: Path, scene: BubbleScene, cfg: dict, seed: int, index: 
         names.append(n)
 
     masks = {n: np.full((frames, native, native), -1, dtype=np.int32) for n in INPUTS}
-    truths = []
+    truths, vol_err = [], []
     t_render = t_truth = 0.0
     for f in range(frames):
         state = scene.state(f / fps)
@@ -169,20 +170,31 @@ def _write_session(sdir: Path, scene: BubbleScene, cfg: dict, seed: int, index: 
         tr = frame_truth(state, spacing=cfg["mesh_spacing"])
         write_ply(gt / "meshes" / f"{f:06d}.ply", tr.verts, tr.faces)
         truths.append(tr)
+        if tr.volumes.size:
+            vol_err.append(mesh_volume(tr.verts, tr.faces) / tr.volumes.sum() - 1)
         t_truth += time.perf_counter() - t1
         t_render += t1 - t0
     for n in INPUTS:
         save_npy(gt / "masks" / f"{n}.npy", masks[n])
     table = bubble_table(truths, fps)
     table.to_csv(gt / "bubbles.csv", index=False, float_format="%.12g", na_rep="nan")
-    merges = [(t, int(np.ceil(t * fps - 1e-9)), a, b, m) for t, a, b, m in scene.merges()]
+    # First frame at which the merged bubble exists (same test as Bubble.alive).
+    merges = [
+        (round(t, 9), next((f for f in range(frames) if t <= f / fps), frames), a, b, m)
+        for t, a, b, m in scene.merges()
+    ]
     pd.DataFrame(merges, columns=["t", "frame", "parent_a", "parent_b", "merged"]).to_csv(
         gt / "merges.csv", index=False, float_format="%.9g"
     )
     per_frame = table.groupby("frame").size().reindex(range(frames), fill_value=0)
+    visible = [int(np.unique(m[m >= 0]).size) for m in masks["cam0"]]
     return {
         "merges": merges,
         "bubbles_per_frame": per_frame.tolist(),
+        "visible_in_cam0_per_frame": visible,
+        "mesh_volume_error_pct": [round(100 * min(vol_err), 3), round(100 * max(vol_err), 3)]
+        if vol_err
+        else None,
         "render_s": round(t_render, 3),
         "truth_s": round(t_truth, 3),
     }
@@ -216,6 +228,7 @@ def write_campaign(
     try:
         log = _build(tmp, cfg, preset, seed)
         (tmp / "synth.json").write_text(json.dumps(log, indent=1))
+        _apply_umask(tmp)
         if out.exists():
             old = out.with_name(f".{out.name}.old{os.getpid()}")
             os.replace(out, old)
@@ -227,6 +240,18 @@ def write_campaign(
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+def _apply_umask(root: Path) -> None:
+    """Give the campaign ordinary permissions (temporary names are created private)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(root, 0o777 & ~umask)
+    for dirpath, dirnames, filenames in os.walk(root):
+        for d in dirnames:
+            os.chmod(os.path.join(dirpath, d), 0o777 & ~umask)
+        for f in filenames:
+            os.chmod(os.path.join(dirpath, f), 0o666 & ~umask)
 
 
 def _build(root: Path, cfg: dict, preset: str, seed: int) -> dict:

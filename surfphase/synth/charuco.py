@@ -3,8 +3,8 @@
 The rig's board (5×7 squares of 4 mm, 3 mm markers, ``DICT_4X4_50``) is drawn with
 OpenCV's own board image (``cv2.aruco.CharucoBoard.generateImage``) and ray-cast
 through the *true* cameras, lens distortion included: every output pixel is split
-into sub-pixels, each sub-pixel's ray (``Camera.pixel_rays(distorted=True)``) is
-intersected with the board plane and the board image is sampled there; the
+into 3×3 sub-pixels, each sub-pixel's ray (``Camera.pixel_rays(distorted=True)`` at
+pixel centres, interpolated bilinearly in between) is intersected with the board plane and the board image is sampled there; the
 sub-pixels are averaged (anti-aliasing), then the image is lightly blurred and noised.
 
 Board frame (OpenCV's ``CharucoBoard.getChessboardCorners`` frame): origin at the
@@ -244,8 +244,8 @@ def _camera_rays(cam: Camera, ss: int) -> tuple[np.ndarray, np.ndarray]:
             c01 = grid[1 : h + 1, 1 + su : w + 1 + su]
             c10 = grid[1 + sv : h + 1 + sv, 1 : w + 1]
             c11 = grid[1 + sv : h + 1 + sv, 1 + su : w + 1 + su]
-            out[:, :, i, j] = (
-                (1 - av) * ((1 - au) * c00 + au * c01) + av * ((1 - au) * c10 + au * c11)
+            out[:, :, i, j] = (1 - av) * ((1 - au) * c00 + au * c01) + av * (
+                (1 - au) * c10 + au * c11
             )
     out = out.reshape(h, w * ss * ss, 2).astype(np.float32)
     return out[..., 0].copy(), out[..., 1].copy()

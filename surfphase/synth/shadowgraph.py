@@ -33,8 +33,8 @@ from surfphase.synth.bubbles import FrameState
 #: Heated plate block, lab frame, metres: (min corner, max corner).
 PLATE_MIN = np.array([-0.012, -0.004, -0.006])
 PLATE_MAX = np.array([0.012, 0.0, 0.006])
-#: Sphere tracing: convergence threshold (m), step factor (field slope ≤ ~1.3), steps.
-HIT_EPS, STEP, MAX_STEPS = 5e-7, 0.75, 90
+#: Sphere tracing: convergence floor (m), step factor (field slope ≤ ~1.1), max steps.
+HIT_EPS, STEP, MAX_STEPS = 5e-7, 0.9, 90
 
 
 @dataclass(frozen=True)
@@ -152,23 +152,25 @@ def trace_many(state: FrameState, rays_list: list[Rays]) -> list[dict[str, np.nd
     )
     active = np.arange(idx.size)
     done_t = np.full(idx.size, np.inf)
+    done_lab = np.full(idx.size, -1)
     for _ in range(MAX_STEPS):
         if active.size == 0:
             break
         ta = t[active]
-        f = state.sdf(o[active] + ta[:, None] * d[active])
+        f, lab = state.sdf_and_label(o[active] + ta[:, None] * d[active])
         hit = f < np.maximum(HIT_EPS, 0.03 * ta * footprint[active])
         done_t[active[hit]] = ta[hit]
+        done_lab[active[hit]] = lab[hit]
         t[active] = ta + STEP * np.maximum(f, HIT_EPS)
         active = active[~hit & (t[active] < t_far[active])]
     got = np.flatnonzero(np.isfinite(done_t))
     p = o[got] + done_t[got, None] * d[got]
-    e = 1e-6
-    offs = np.concatenate([np.eye(3) * e, -np.eye(3) * e])  # (6, 3)
-    f6 = state.sdf((p[:, None, :] + offs[None]).reshape(-1, 3)).reshape(-1, 6)
-    g = f6[:, :3] - f6[:, 3:]
+    # Normal from four tetrahedral samples: Σ_k e_k·f(p + h·e_k) ∝ ∇f.
+    tet = np.array([[1.0, -1.0, -1.0], [-1.0, -1.0, 1.0], [-1.0, 1.0, -1.0], [1.0, 1.0, 1.0]])
+    f4 = state.sdf((p[:, None, :] + 1e-6 * tet[None]).reshape(-1, 3)).reshape(-1, 4)
+    g = f4 @ tet
     g /= np.maximum(np.linalg.norm(g, axis=1, keepdims=True), 1e-12)
-    _, lab = state.sdf_and_label(p)
+    lab = done_lab[got]
     for i, out in enumerate(outs):
         mine = owner[got] == i
         k = idx[got[mine]]

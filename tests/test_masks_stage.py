@@ -1,0 +1,103 @@
+"""The mask stage end to end, its command line, and its errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from masks_scene import rising, write_ingest
+
+from surfphase.cli import main
+from surfphase.masks.stage import DEFAULTS, merge_params, run_mask_stage
+
+SPHERES = [
+    lambda t: (np.array([-0.0025, 0.0006 + 0.00003 * t, 0.0]), 0.0006 + 0.00003 * t),
+    rising(0.002, 0.003, 0.0, 0.0008),
+    rising(-0.001, 0.008, 0.001, 0.001),
+]
+
+
+@pytest.fixture(scope="module")
+def ingest(tmp_path_factory):
+    d = tmp_path_factory.mktemp("ingest")
+    truth = write_ingest(d, SPHERES, 6)
+    return d, truth
+
+
+def test_command_writes_every_output(ingest, tmp_path, capsys):
+    d, truth = ingest
+    out = tmp_path / "masks"
+    cfg = tmp_path / "config.yaml"
+    cfg.write_text("masks:\n  overlay_frames: 2\n  associate:\n    coast_frames: 4\n")
+    assert main(["mask", "--ingest", str(d), "--out", str(out), "--config", str(cfg)]) == 0
+    for c in truth:
+        lab = np.load(out / f"{c}_labels.npy")
+        assert lab.dtype == np.int32 and lab.shape == truth[c].shape
+        # Background where the truth is background (allowing the 1-px rim).
+        assert (lab[truth[c] < 0] >= 0).mean() < 0.01
+        assert set(np.unique(lab)) == {-1, 0, 1, 2}
+    inst = pd.read_csv(out / "instances.csv")
+    assert list(inst.columns) == ["frame", "camera", "bubble", "area", "cx", "cy", "x0", "y0",
+                                  "x1", "y1", "score"]
+    assert len(inst) == 6 * 2 * 3
+    # The instance table agrees with the label stacks.
+    lab0 = np.load(out / "cam0_labels.npy")
+    for r in inst[inst.camera == "cam0"].itertuples():
+        m = lab0[r.frame] == r.bubble
+        ys, xs = np.nonzero(m)
+        assert r.area == m.sum() and (r.x0, r.y0, r.x1, r.y1) == (xs.min(), ys.min(), xs.max(),
+                                                                  ys.max())
+        assert r.cx == pytest.approx(xs.mean(), abs=1e-3)
+    assert list(pd.read_csv(out / "events.csv").columns) == ["frame", "camera", "event",
+                                                             "parents", "children"]
+    assert sorted(p.name for p in (out / "overlays").iterdir()) == ["frame_00000.png",
+                                                                    "frame_00005.png"]
+    info = json.loads((out / "masks.json").read_text())
+    assert info["session"] == "s01" and info["bubbles"] == 2
+    assert info["params"]["associate"]["coast_frames"] == 4
+    assert "masks written" in capsys.readouterr().out
+
+
+def test_integer_frames_give_the_same_masks(ingest, tmp_path):
+    d, _ = ingest
+    run_mask_stage(d, tmp_path / "a", {"overlay_frames": 0})
+    d16 = tmp_path / "in16"
+    write_ingest(d16, SPHERES, 6, dtype=np.uint16)
+    run_mask_stage(d16, tmp_path / "b", {"overlay_frames": 0})
+    for c in ("cam0", "cam1"):
+        a = np.load(tmp_path / "a" / f"{c}_labels.npy")
+        b = np.load(tmp_path / "b" / f"{c}_labels.npy")
+        assert (a == b).mean() > 0.999
+
+
+def test_missing_stack_is_named(ingest, tmp_path, capsys):
+    d, _ = ingest
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for f in ("cameras.json", "meta.json", "cam0.npy"):
+        (broken / f).write_bytes((d / f).read_bytes())
+    rc = main(["mask", "--ingest", str(broken), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "cam1.npy" in err and "s01" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_frames_of_the_wrong_size_are_refused(ingest, tmp_path):
+    d, _ = ingest
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for f in ("cameras.json", "meta.json", "cam0.npy"):
+        (bad / f).write_bytes((d / f).read_bytes())
+    np.save(bad / "cam1.npy", np.zeros((6, 100, 128), np.float32))
+    with pytest.raises(ValueError, match=r"cam1\.npy: frames are 128×100 pixels.*128×128"):
+        run_mask_stage(bad, tmp_path / "o", {})
+
+
+def test_config_errors_name_the_key():
+    with pytest.raises(ValueError, match="masks.classical.treshold_low"):
+        merge_params({"classical": {"treshold_low": 0.1}})
+    with pytest.raises(ValueError, match="backend"):
+        merge_params({"backend": "magic"})
+    assert merge_params(None) == DEFAULTS
