@@ -26,8 +26,11 @@ def rig(size: int = 128):
     return {"cam0": cam0, "cam1": replace(cam1, name="cam1", role="input")}
 
 
-def draw_view(cam, spheres, seed: int, noise: float = 0.01):
-    """spheres: list of (centre (3,), radius m). Returns (image float32, truth int32)."""
+def draw_view(cam, spheres, seed: int, noise: float = 0.01, core: bool = True):
+    """spheres: list of (centre (3,), radius m). Returns (image float32, truth int32).
+
+    ``core=False`` draws uniformly dark disks instead of rings with a bright core.
+    """
     h, w = cam.height, cam.width
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     bg = 0.8 + 0.08 * (xx / w) - 0.06 * (yy / h) - 0.12 * (((xx - w / 2) ** 2 + (yy - h / 2) ** 2)
@@ -44,7 +47,8 @@ def draw_view(cam, spheres, seed: int, noise: float = 0.01):
         rp = cam.K[0, 0] * r / depth[k]
         d = np.sqrt((xx[..., None, None] + ox - u) ** 2 + (yy[..., None, None] + oy - v) ** 2)
         rho = d / rp
-        trans = np.where(rho < 1, 0.1 + 0.75 * np.exp(-((rho / 0.5) ** 2)), 1.0).mean(axis=(2, 3))
+        inner = 0.1 + 0.75 * np.exp(-((rho / 0.5) ** 2)) if core else 0.12
+        trans = np.where(rho < 1, inner, 1.0).mean(axis=(2, 3))
         cover = (rho < 1).mean(axis=(2, 3)) >= 0.5
         img = np.where(cover | (trans < 1), img * trans, img)
         truth[cover] = k
@@ -53,7 +57,7 @@ def draw_view(cam, spheres, seed: int, noise: float = 0.01):
 
 
 def write_ingest(folder: Path, tracks, n_frames: int, size: int = 128, dtype=np.float32,
-                 session: str = "s01"):
+                 session: str = "s01", core: bool = True):
     """tracks: list of functions frame → (centre, radius) or None. Writes an ingest folder.
 
     Returns ``{camera: (T, H, W) truth}`` (sphere index per pixel, −1 background).
@@ -66,7 +70,7 @@ def write_ingest(folder: Path, tracks, n_frames: int, size: int = 128, dtype=np.
         for t in range(n_frames):
             sph = [f(t) for f in tracks]
             idx = [i for i, s in enumerate(sph) if s is not None]
-            im, lab = draw_view(cam, [sph[i] for i in idx], seed=1000 * ci + t)
+            im, lab = draw_view(cam, [sph[i] for i in idx], seed=1000 * ci + t, core=core)
             lut = np.array(idx + [-1], np.int32)
             frames.append(im)
             tr.append(lut[lab])

@@ -17,7 +17,7 @@ from surfphase.cli import main
 from surfphase.synth.charuco import board_yaml_dict, write_calibration_images
 from surfphase.synth.rig import SCENE_CENTER, default_rig
 
-N_POSES = 24
+N_POSES = 40
 
 
 @pytest.fixture(scope="module")
@@ -52,12 +52,13 @@ def test_recovers_true_cameras_in_lab_frame(calibration):
         assert _angle_deg(cam.R, g.R) < 0.2, n
         assert report["cameras"][n]["rms_px"] < 0.5
         assert report["cameras"][n]["images_used"] >= 10
-        # The principal point of a 17° field of view trades off against the camera's
-        # rotation; it must agree with the truth within the calibration's own 3-sigma.
+        # The principal point trades off against the camera's rotation in a narrow field
+        # of view (32° here): it needs many poses, and must also agree with the
+        # calibration's own uncertainty.
         sd = report["cameras"][n]["sd_px"]
         pp_err = cam.K[:2, 2] - g.K[:2, 2]
+        assert np.abs(pp_err).max() < 1.0, (n, pp_err)
         assert abs(pp_err[0]) < 3 * sd["cx"] and abs(pp_err[1]) < 3 * sd["cy"], (n, pp_err, sd)
-        assert max(sd["cx"], sd["cy"]) < 4.0
         # What the principal point and rotation together decide: where scene points land.
         grid = np.stack(np.meshgrid(*[np.linspace(-0.006, 0.006, 5)] * 3), -1).reshape(-1, 3)
         X = grid + SCENE_CENTER

@@ -47,17 +47,30 @@ def test_densify_clones_small_splits_large_and_prunes_transparent():
     opt = make_optimizer(m, DEFAULTS)
     with torch.no_grad():
         m.params["sdf"][3] = 10.0  # opacity ≈ 0: pruned
-    strat = Densify2DGS(refine_start=0, refine_stop=100, refine_every=1, grow_grad2d=1e-3,
-                        grow_scale=0.01, prune_opacity=0.05, prune_scale=10.0)
+    strat = Densify2DGS(
+        refine_start=0,
+        refine_stop=100,
+        refine_every=1,
+        grow_grad2d=1e-3,
+        grow_scale=0.01,
+        prune_opacity=0.05,
+        prune_scale=10.0,
+    )
     state = strat.initialize_state(m.n)
     means2d = torch.zeros(2, 4, 2, requires_grad=True)
-    info = {"means2d": means2d, "radii": torch.ones(2, 4, dtype=torch.int32), "width": 20,
-            "height": 20}
+    info = {
+        "means2d": means2d,
+        "radii": torch.ones(2, 4, dtype=torch.int32),
+        "width": 20,
+        "height": 20,
+    }
     strat.before_backward(info)
     # Gradient high for surfels 0 (small) and 1 (large), low for 2.
     (means2d * torch.tensor([1.0, 1.0, 1e-6, 0.0])[None, :, None]).sum().backward()
     before = m.state()
-    changed = strat.after_backward(m, opt, state, 0, info, generator=torch.Generator().manual_seed(0))
+    changed = strat.after_backward(
+        m, opt, state, 0, info, generator=torch.Generator().manual_seed(0)
+    )
     assert changed
     # Kept: 0, 2 (originals), clone of 0, two children of 1; 1 (split) and 3 (pruned) gone.
     assert m.n == 5

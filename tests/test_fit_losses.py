@@ -37,7 +37,12 @@ def test_ssim_matches_scikit_image_away_from_border():
     a = rng.random((40, 36))
     b = np.clip(a + 0.1 * rng.standard_normal(a.shape), 0, 1)
     _, ref = structural_similarity(
-        a, b, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0,
+        a,
+        b,
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
+        data_range=1.0,
         full=True,
     )
     ours = losses.ssim_map(

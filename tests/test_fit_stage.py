@@ -62,9 +62,24 @@ def test_fit_reconstructs_and_tracks_the_rising_bubble(toy, tmp_path):
 
 def _fit_cmd(ingest, masks, out, cfg, ckpt):
     return [
-        sys.executable, "-m", "surfphase", "fit", "--ingest", str(ingest), "--masks",
-        str(masks), "--out", str(out), "--config", str(cfg), "--checkpoint", str(ckpt),
-        "--device", "cpu", "--threads", "1",
+        sys.executable,
+        "-m",
+        "surfphase",
+        "fit",
+        "--ingest",
+        str(ingest),
+        "--masks",
+        str(masks),
+        "--out",
+        str(out),
+        "--config",
+        str(cfg),
+        "--checkpoint",
+        str(ckpt),
+        "--device",
+        "cpu",
+        "--threads",
+        "1",
     ]
 
 

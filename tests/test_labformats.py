@@ -9,13 +9,15 @@ header parser and 16-bit reader cross-check the CINE files.
 
 from __future__ import annotations
 
+import importlib.util
 import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from surfphase.labformats import LAB_SUFFIXES, open_lab_video
+from surfphase.labformats import LAB_SUFFIXES, open_lab_video, write_mraw
+from surfphase.labformats import write_cine as lab_write_cine
 
 RNG = np.random.default_rng(0)
 
@@ -155,6 +157,9 @@ def test_mraw_written_by_pymraw(tmp_path, bits):
 
 def test_mraw_12bit_packed(tmp_path):
     data = frames(4, 8, 6, 12)
+    pymraw = pytest.importorskip("pyMRAW")  # its unpacker agrees with the packing used here
+    theirs = pymraw.nb_read_uint12(np.frombuffer(pack12(data), dtype=np.uint8))
+    np.testing.assert_array_equal(theirs.reshape(data.shape), data)
     (tmp_path / "rec.mraw").write_bytes(pack12(data))
     write_cih(tmp_path / "rec.cih", 4, 8, 6, 12, 12, "Lower", 20000)
     v = open_lab_video(tmp_path / "rec.cih")
@@ -250,6 +255,34 @@ def test_cine_errors(tmp_path):
         list(open_lab_video(tmp_path / "t.cine").read())
     with pytest.raises(ValueError, match="not a lab format"):
         open_lab_video(tmp_path / "x.avi")
+
+
+@pytest.mark.parametrize("bits", [8, 12, 16])
+def test_write_mraw_read_by_pymraw(tmp_path, bits):
+    pymraw = pytest.importorskip("pyMRAW")
+    data = frames(3, 4, 6, bits)
+    cih = write_mraw(tmp_path / "w.cih", data, bits, fps=12500)
+    images, info = pymraw.load_video(str(cih))
+    np.testing.assert_array_equal(np.asarray(images), data)
+    assert info["Record Rate(fps)"] == 12500 and info["Color Bit"] == bits
+    v = open_lab_video(cih)
+    assert (v.bit_depth, v.fps) == (bits, 12500.0)
+    np.testing.assert_array_equal(np.stack(list(v.read())), data)
+
+
+@pytest.mark.parametrize(("bits", "w"), [(8, 5), (12, 6)])
+def test_write_cine(tmp_path, bits, w):
+    data = frames(3, 4, w, bits)
+    path = lab_write_cine(tmp_path / "w.cine", data, bits, fps=9000)
+    v = open_lab_video(path)
+    assert (v.count, v.shape, v.bit_depth, v.fps) == (3, (4, w), bits, 9000.0)
+    np.testing.assert_array_equal(np.stack(list(v.read())), data)
+    if bits > 8 and importlib.util.find_spec("pycine"):
+        from pycine.raw import read_frames
+
+        gen, setup, bpp = read_frames(str(path))
+        assert (bpp, setup.FrameRate) == (bits, 9000)
+        np.testing.assert_array_equal(np.stack(list(gen)), data)
 
 
 def test_suffixes():

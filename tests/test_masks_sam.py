@@ -235,3 +235,49 @@ def test_encoder_of_wrong_input_size_is_a_clear_error(tiny_sam, tmp_path):
         model.embed(np.zeros((64, 64), np.float32))
     with pytest.raises(ValueError, match="shape"):
         model.embed(np.zeros((4, 5, 6), np.float32))
+
+
+def test_mask_stage_runs_with_the_sam_backend(tiny_sam, tmp_path):
+    """The stage, SAM backend, tiny models: every dark sphere found, ids agree."""
+    import json
+
+    from masks_scene import rising, write_ingest
+
+    from surfphase.masks.stage import run_mask_stage
+
+    enc, dec = tiny_sam
+    spheres = [rising(-0.002, 0.004, 0.0, 0.0008), rising(0.0025, 0.009, 0.0, 0.0009)]
+    truth = write_ingest(tmp_path / "ingest", spheres, 3, size=64, core=False)
+    params = {"backend": "sam", "overlay_frames": 1,
+              "sam": {"encoder": str(enc), "decoder": str(dec), "points_per_side": 8,
+                      "min_region_area": 4}}
+    run_mask_stage(tmp_path / "ingest", tmp_path / "out", params)
+    for c in truth:
+        lab = np.load(tmp_path / "out" / f"{c}_labels.npy")
+        assert lab.shape == truth[c].shape
+        for k in range(2):
+            for t in range(3):
+                g = truth[c][t] == k
+                ids, cnt = np.unique(lab[t][g], return_counts=True)
+                p = lab[t] == ids[np.argmax(cnt)]
+                assert ids[np.argmax(cnt)] >= 1 and (g & p).sum() / (g | p).sum() > 0.7
+    a = np.load(tmp_path / "out" / "cam0_labels.npy")
+    b = np.load(tmp_path / "out" / "cam1_labels.npy")
+    for k in range(2):
+        ida = np.unique(a[truth["cam0"] == k])
+        idb = np.unique(b[truth["cam1"] == k])
+        assert ida[-1] == idb[-1]
+    info = json.loads((tmp_path / "out" / "masks.json").read_text())
+    assert info["backend"] == "sam" and info["bubbles"] == 2
+
+
+def test_sam_stage_without_models_says_where_to_put_them(tmp_path):
+    from masks_scene import rising, write_ingest
+
+    from surfphase.masks.stage import run_mask_stage
+
+    write_ingest(tmp_path / "ingest", [rising(0.0, 0.005, 0.0, 0.001)], 1, size=32)
+    with pytest.raises(FileNotFoundError, match=r"masks\.sam\.encoder.*samexporter"):
+        run_mask_stage(tmp_path / "ingest", tmp_path / "out",
+                       {"backend": "sam", "sam": {"encoder": str(tmp_path / "e.onnx")}})
+    assert not (tmp_path / "out").exists()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -46,7 +47,12 @@ def slurm_ready() -> str:
     return ""
 
 
-pytestmark = pytest.mark.skipif(bool(slurm_ready()), reason=slurm_ready() or "SLURM ready")
+# CI sets SURFPHASE_REQUIRE_SLURM=1 after starting SLURM: there, a cluster that is not
+# ready fails the test instead of skipping it.
+REQUIRED = os.environ.get("SURFPHASE_REQUIRE_SLURM") == "1"
+pytestmark = pytest.mark.skipif(
+    not REQUIRED and bool(slurm_ready()), reason=slurm_ready() or "SLURM ready"
+)
 
 
 def make_campaign(root: Path, data: Path, extra: str = "") -> Path:
@@ -88,6 +94,8 @@ def test_campaign_through_slurm_equals_local(tmp_path, monkeypatch):
     # thread pool (calibration results vary in the last digits with >1 thread) and the
     # threads Snakemake gives a job (it sets OMP_NUM_THREADS from them). SLURM jobs get
     # this environment too (sbatch --export=ALL).
+    if slurm_ready():
+        pytest.fail(f"SURFPHASE_REQUIRE_SLURM=1 but {slurm_ready()}")
     monkeypatch.setenv("OPENCV_FOR_THREADS_NUM", "1")
     one_thread = "--max-threads 1"
     data = tmp_path / "data"

@@ -66,7 +66,9 @@ def register(subparsers) -> None:
         "bubble masks; write surfels.npz, bubbles.csv (m, m/s, lab frame), curves.csv, "
         "summary.json and renders/. Resumes from the checkpoint folder when killed.",
     )
-    p.add_argument("--ingest", required=True, help="ingest folder (<cam>.npy, cameras.json, meta.json)")
+    p.add_argument(
+        "--ingest", required=True, help="ingest folder (<cam>.npy, cameras.json, meta.json)"
+    )
     p.add_argument("--masks", required=True, help="mask folder (<cam>_labels.npy)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="config YAML (its 'fit:' section overrides the defaults)")
@@ -87,7 +89,7 @@ def _bench(args: argparse.Namespace) -> int:
         frames=args.frames,
         threads=args.threads,
         device=args.device,
-        ablations=not args.no_ablations,
+        variants=tuple(v for v in args.variants.split(",") if v),
         params=json.loads(args.params) if args.params else None,
     )
     print(json.dumps(result, indent=1))
@@ -103,6 +105,10 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--frames", type=int, default=24)
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default="cpu")
-    p.add_argument("--no-ablations", action="store_true", help="skip the no-guidance run")
+    p.add_argument(
+        "--variants",
+        default="guided,no_guidance",
+        help="comma-separated runs: guided, no_guidance, no_sdf (default guided,no_guidance)",
+    )
     p.add_argument("--params", default=None, help="JSON overrides of the fit parameters")
     p.set_defaults(func=_bench)

@@ -316,3 +316,54 @@ def register(subparsers) -> None:
     )
     p.add_argument("--force", action="store_true", help="overwrite an existing config")
     p.set_defaults(func=new_campaign_cmd)
+
+
+def bench_labformats_cmd(args: argparse.Namespace) -> int:
+    """Read speed of the lab-format readers (frames/s), every frame checked."""
+    import tempfile
+    import time
+
+    import numpy as np
+
+    from surfphase.labformats import write_cine, write_mraw
+
+    n, size = args.frames, args.size
+    rng = np.random.default_rng(0)
+    cases = [("mraw", 8), ("mraw", 12), ("mraw", 16), ("cine", 8), ("cine", 12)]
+    print(f"{n} frames of {size}x{size}, read one at a time (after a 1-frame warm-up)")
+    with tempfile.TemporaryDirectory(dir=args.work) as tmp:
+        for kind, bits in cases:
+            data = rng.integers(
+                0, 2**bits, (n, size, size), dtype=np.uint8 if bits == 8 else np.uint16
+            )
+            if kind == "mraw":
+                path = write_mraw(Path(tmp) / f"m{bits}.cih", data, bits, fps=10000)
+            else:
+                path = write_cine(Path(tmp) / f"c{bits}.cine", data, bits, fps=10000)
+            t0 = time.perf_counter()
+            video = open_lab_video(path)
+            t_open = time.perf_counter() - t0
+            next(video.read([0]))
+            t0 = time.perf_counter()
+            for i, frame in enumerate(video.read()):
+                if not np.array_equal(frame, data[i]):
+                    raise ValueError(f"{path}: frame {i} read back wrong")
+            dt = time.perf_counter() - t0
+            print(
+                f"{kind} {bits:>2}-bit: open {t_open * 1e3:6.1f} ms, read {n / dt:7.0f} frames/s "
+                f"({n * size * size / dt / 1e6:6.1f} Mpixel/s)"
+            )
+    return 0
+
+
+def register_bench(bench_subparsers) -> None:
+    p = bench_subparsers.add_parser(
+        "labformats",
+        help="read speed of the MRAW and CINE readers",
+        description="Write MRAW (8/12/16-bit) and CINE (8/12-bit) recordings of random "
+        "frames to a scratch folder, then time reading every frame back (and check it).",
+    )
+    p.add_argument("--frames", type=int, default=200)
+    p.add_argument("--size", type=int, default=512, help="frame width and height, pixels")
+    p.add_argument("--work", help="scratch folder (default: the system's temporary folder)")
+    p.set_defaults(func=bench_labformats_cmd)

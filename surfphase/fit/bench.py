@@ -147,47 +147,67 @@ def evaluate(out: Path, sess: Path, cams: dict, device: str, max_dist: float) ->
     return res
 
 
+#: Benchmark variants: fit parameters added to the run's own.
+VARIANTS = {
+    "guided": {},
+    "no_guidance": {"guidance": False},
+    "no_sdf": {"use_sdf": False},
+}
+
+
 def run_benchmark(
     work: Path,
     frames: int = 24,
     threads: int = 2,
     device: str = "cpu",
-    ablations: bool = True,
+    variants: tuple[str, ...] = ("guided", "no_guidance"),
     params: dict | None = None,
     max_dist: float = 1.5e-3,
 ) -> dict:
-    """Run the benchmark; write ``work/result.json`` and return it."""
+    """Run the benchmark variants; write ``work/result_<variant>.json`` and
+    ``work/result.json`` (every variant found in ``work``), return the latter.
+
+    ``max_dist`` (m) gates the matching of predicted to true bubbles.
+    """
     from surfphase.fit.stage import run_fit
 
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        raise ValueError(f"bench fit: unknown variants {unknown}; known: {sorted(VARIANTS)}")
     torch.set_num_threads(threads)
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     demo = prepare_demo(work)
-    result = {
-        "frames": frames,
-        "threads": threads,
-        "device": device,
-        "params": params or {},
-        "prepare_s": time.perf_counter() - t0,
-    }
-    runs = {"guided": {}}
-    if ablations:
-        runs["no_guidance"] = {"guidance": False}
-    for name, extra in runs.items():
+    prepare_s = time.perf_counter() - t0
+    for name in variants:
         out = work / f"fit_{name}"
         t1 = time.perf_counter()
         run_fit(
             demo["ingest"],
             demo["masks"],
             out,
-            {**(params or {}), **extra, "frames": frames},
+            {**(params or {}), **VARIANTS[name], "frames": frames},
             device=device,
+            checkpoint_dir=work / f"fit_{name}.ckpt",
         )
         r = evaluate(out, demo["session"], demo["cameras"], device, max_dist)
-        r["wall_s"] = time.perf_counter() - t1
-        result[name] = r
-    if ablations:
+        r.update(
+            {
+                "wall_s": time.perf_counter() - t1,
+                "frames": frames,
+                "threads": threads,
+                "device": device,
+                "params": params or {},
+            }
+        )
+        (work / f"result_{name}.json").write_text(json.dumps(r, indent=1))
+    result: dict = {"prepare_s": prepare_s}
+    for name in VARIANTS:
+        f = work / f"result_{name}.json"
+        if f.exists():
+            result[name] = json.loads(f.read_text())
+    if "guided" in result and "no_guidance" in result:
         g = result["guided"]["velocity_error_bubbles"]
         u = result["no_guidance"]["velocity_error_bubbles"]
         result["no_guidance_over_guided"] = u / g if g else None

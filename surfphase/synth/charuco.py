@@ -156,7 +156,7 @@ def _facing_rotation(towards: np.ndarray) -> np.ndarray:
 
 
 def calibration_poses(
-    cameras: Mapping[str, Camera], board: dict, seed: int = 0, n_poses: int = 14
+    cameras: Mapping[str, Camera], board: dict, seed: int = 0, n_poses: int = 40
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Board poses ``(R, t)`` (``x_lab = R x_board + t``, metres) for the calibration images.
 
@@ -307,7 +307,7 @@ def render_board_view(
 
 
 def write_calibration_images(
-    cameras: dict[str, Camera], out_dir: Path, seed: int = 0, n_poses: int = 14
+    cameras: dict[str, Camera], out_dir: Path, seed: int = 0, n_poses: int = 40
 ) -> None:
     """Write synchronized ChArUco images ``out_dir/<cam>/poseNNN.png`` for the input cameras.
 
