@@ -4,6 +4,8 @@
 
 * a folder: its images (PNG, TIFF, JPEG, BMP) sorted by file name, one frame each;
 * ``.tif`` / ``.tiff``: a multi-page TIFF, one page per frame (``tifffile``);
+* ``.cih`` / ``.cihx`` / ``.mraw`` (Photron) and ``.cine`` (Phantom): high-speed camera
+  files, read by :mod:`surfphase.labformats` (8, 12 or 16 bit);
 * anything else: a video file read with ``cv2.VideoCapture``.
 
 Every reader yields 2D grayscale frames (colour is converted with OpenCV's luma
@@ -19,6 +21,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import tifffile
+
+from surfphase.labformats import LAB_SUFFIXES, open_lab_video
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 TIFF_SUFFIXES = (".tif", ".tiff")
@@ -214,6 +218,8 @@ def open_video(path: str | Path) -> VideoSource:
         raise FileNotFoundError(f"video not found: {path}")
     if path.is_dir():
         return ImageFolder(path)
+    if path.suffix.lower() in LAB_SUFFIXES:
+        return open_lab_video(path)
     if path.suffix.lower() in TIFF_SUFFIXES:
         return TiffStack(path)
     return VideoFile(path)

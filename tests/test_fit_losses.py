@@ -112,7 +112,7 @@ def test_projection_loss_uses_zero_level_points_and_threshold():
     with torch.no_grad():
         model.params["sdf"].fill_(0.001 / L)
     pts = model.zero_level_points()
-    assert float(losses.projection_loss(pts, depth, view, K, L, 0.1)) < 1e-12
+    assert float(losses.projection_loss(pts, depth, view, K, L, 0.1).detach()) < 1e-12
     # With f = 0 the error is 1 mm = 0.1 L: kept at threshold 0.15, ignored at 0.05.
     err = losses.projection_loss(mu, depth, view, K, L, 0.15)
     assert abs(float(err) - 0.1) < 1e-9

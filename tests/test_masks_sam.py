@@ -6,8 +6,8 @@ tiny decoder follows ``SamOnnxModel``'s conventions — points shifted by +0.5 a
 divided by 1024, padding point labelled −1, masks post-processed to
 ``orig_im_size`` — and returns four tokens: token 0 a disk of radius ``R[0]`` around
 the prompt (to check the coordinate transforms), tokens 1–3 the dark region within
-radius ``R[k]`` of the prompt, with a predicted IoU equal to the darkness at the
-prompt. A correct pipeline must therefore find every dark disk.
+radius ``R[k]`` of the prompt, with a predicted IoU growing with the darkness at
+the prompt. A correct pipeline must therefore find every dark disk.
 """
 
 from __future__ import annotations
@@ -86,6 +86,7 @@ class TinyDecoder(nn.Module):
             point_labels[:, 0] == 1).float()
         g = (pt / 1024.0) * 2 - 1
         at = F.grid_sample(dark, g.view(b, 1, 1, 2), align_corners=False).view(b)
+        at = torch.clamp((at - 0.2) / 0.6, 0.0, 1.0)
         iou = torch.stack([torch.ones_like(at)] + [at * (0.9 + 0.03 * k) for k in (1, 2, 3)], 1)
         iou = iou * ok.view(b, 1) + 0.0 * mask_input.mean()
         up = F.interpolate(low, size=(1024, 1024), mode="bilinear", align_corners=False)
@@ -192,7 +193,7 @@ def test_automatic_masks_find_every_bubble(tiny_sam, tmp_path, dynamic_batch):
     assert model.dynamic_batch == dynamic_batch
     disks = [(30, 48, 14), (80, 40, 12), (130, 55, 16)]
     img, truth = dark_disks(96, 160, disks)
-    labels, scores = model.generate(img, {"points_per_side": 12, "points_per_batch": 16,
+    labels, scores = model.generate(img, {"points_per_side": 10, "points_per_batch": 16,
                                           "min_region_area": 10})
     assert labels.shape == img.shape and labels.dtype == np.int32
     assert labels.max() + 1 == len(disks) == len(scores)
@@ -246,27 +247,26 @@ def test_mask_stage_runs_with_the_sam_backend(tiny_sam, tmp_path):
     from surfphase.masks.stage import run_mask_stage
 
     enc, dec = tiny_sam
-    spheres = [rising(-0.002, 0.004, 0.0, 0.0008), rising(0.0025, 0.009, 0.0, 0.0009)]
-    truth = write_ingest(tmp_path / "ingest", spheres, 3, size=64, core=False)
+    spheres = [rising(-0.002, 0.003, 0.0, 0.0016), rising(0.0025, 0.0095, 0.0, 0.0018)]
+    truth = write_ingest(tmp_path / "ingest", spheres, 2, size=64, core=False)
     params = {"backend": "sam", "overlay_frames": 1,
-              "sam": {"encoder": str(enc), "decoder": str(dec), "points_per_side": 8,
+              "sam": {"encoder": str(enc), "decoder": str(dec), "points_per_side": 6,
                       "min_region_area": 4}}
     run_mask_stage(tmp_path / "ingest", tmp_path / "out", params)
+    ids = {}
     for c in truth:
         lab = np.load(tmp_path / "out" / f"{c}_labels.npy")
         assert lab.shape == truth[c].shape
         for k in range(2):
-            for t in range(3):
+            for t in range(2):
                 g = truth[c][t] == k
-                ids, cnt = np.unique(lab[t][g], return_counts=True)
-                p = lab[t] == ids[np.argmax(cnt)]
-                assert ids[np.argmax(cnt)] >= 1 and (g & p).sum() / (g | p).sum() > 0.7
-    a = np.load(tmp_path / "out" / "cam0_labels.npy")
-    b = np.load(tmp_path / "out" / "cam1_labels.npy")
+                v, cnt = np.unique(lab[t][g], return_counts=True)
+                best = v[np.argmax(cnt)]
+                p = lab[t] == best
+                assert best >= 1 and (g & p).sum() / (g | p).sum() > 0.75
+                ids.setdefault((c, k), set()).add(int(best))
     for k in range(2):
-        ida = np.unique(a[truth["cam0"] == k])
-        idb = np.unique(b[truth["cam1"] == k])
-        assert ida[-1] == idb[-1]
+        assert ids[("cam0", k)] == ids[("cam1", k)] and len(ids[("cam0", k)]) == 1
     info = json.loads((tmp_path / "out" / "masks.json").read_text())
     assert info["backend"] == "sam" and info["bubbles"] == 2
 
@@ -281,3 +281,15 @@ def test_sam_stage_without_models_says_where_to_put_them(tmp_path):
         run_mask_stage(tmp_path / "ingest", tmp_path / "out",
                        {"backend": "sam", "sam": {"encoder": str(tmp_path / "e.onnx")}})
     assert not (tmp_path / "out").exists()
+
+
+def test_low_res_post_processing_matches_sam_chain(tiny_sam):
+    """The separable post-processing equals SAM's upsample → crop → resize in torch."""
+    model = SamOnnx(*tiny_sam)
+    low = np.random.default_rng(0).normal(size=(2, 4, 256, 256)).astype(np.float32)
+    for h, w in ((96, 160), (130, 70), (64, 64)):
+        h2, w2 = resized_shape(h, w)
+        t = F.interpolate(torch.from_numpy(low), size=(1024, 1024), mode="bilinear",
+                          align_corners=False)[..., :h2, :w2]
+        ref = F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False).numpy()
+        np.testing.assert_allclose(model.upscale_low_res(low, (h, w)), ref, atol=2e-4)

@@ -264,3 +264,22 @@ Complete log(s): /c/.snakemake/log/x.snakemake.log
     assert "done   ingest s=s1" in lines[2]
     assert lines[3] == "[  1/2    50%] FAILED fit   log: logs/fit/s1.log"
     assert (prog.done, prog.total, prog.log_file) == (1, 2, "/c/.snakemake/log/x.snakemake.log")
+
+
+def test_live_line_shows_running_jobs_and_their_logs(tmp_path):
+    """On a terminal, long jobs show their elapsed time and the last line of their log."""
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "logs" / "fit.log").write_text("frame 1/24\nframe 7/24 psnr 31.2\n")
+    out = io.StringIO()
+    prog = runmod.Progress(tmp_path, out=out, live=True)
+    for line in [
+        "rule fit:",
+        "    log: logs/fit.log",
+        "    jobid: 5",
+        "    wildcards: session=a",
+        "    resources: tmpdir=/tmp",
+    ]:
+        prog.feed(line)
+    prog.tick()
+    live = out.getvalue().rsplit("\r\033[K", 1)[-1]
+    assert live.startswith("[  0/?      ] running: fit session=a 0m00s | frame 7/24 psnr 31.2")

@@ -233,6 +233,39 @@ def calibrate_rig_detailed(
 ) -> Calibration:
     """Calibrate all cameras of a rig from synchronized ChArUco images.
 
+    See :func:`_calibrate_rig_detailed` for the arguments. OpenCV's solvers run on one
+    thread here: its thread pool changes the last digits of the result from run to run,
+    and the same inputs must give the same cameras.
+    """
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        return _calibrate_rig_detailed(
+            board_yaml,
+            image_dirs,
+            min_images=min_images,
+            rig=rig,
+            min_corners=min_corners,
+            max_view_rms=max_view_rms,
+            fix_k3=fix_k3,
+            max_refits=max_refits,
+        )
+    finally:
+        cv2.setNumThreads(threads)
+
+
+def _calibrate_rig_detailed(
+    board_yaml: Path | BoardSpec,
+    image_dirs: dict[str, Path],
+    min_images: int = 6,
+    rig: str | None = None,
+    min_corners: int = 4,
+    max_view_rms: float = 1.0,
+    fix_k3: bool = True,
+    max_refits: int = 8,
+) -> Calibration:
+    """Calibrate all cameras of a rig from synchronized ChArUco images.
+
     Args:
         board_yaml: the board description (``board.yaml`` path or a :class:`BoardSpec`).
         image_dirs: ``{camera name: folder of images}``; the first camera is camera 0

@@ -74,13 +74,11 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 def prepare_demo(work: Path) -> dict:
     """Build (or reuse) the demo session's campaign, ingest and masks under ``work``."""
-    from surfphase.ingest import ingest_session
-    from surfphase.masks.stage import run_mask_stage
-    from surfphase.synth.campaign import write_campaign
-
     camp = work / "campaign"
     sess = camp / "session01"
     if not (sess / "gt" / "bubbles.csv").exists():
+        from surfphase.synth.campaign import write_campaign
+
         write_campaign(camp, preset="demo", seed=0, overwrite=True, sessions=1, clips=0)
     gt_json = json.loads((sess / "gt" / "cameras.json").read_text())
     cams = load_cameras(sess / "gt" / "cameras.json")
@@ -88,6 +86,8 @@ def prepare_demo(work: Path) -> dict:
     scale = float(gt_json.get("fit_scale", 0.25))
     ingest, masks = work / "ingest", work / "masks"
     if not (ingest / "meta.json").exists():
+        from surfphase.ingest import ingest_session
+
         ingest_session(
             "session01",
             {n: cams[n] for n in ("cam0", "cam1")},
@@ -97,6 +97,8 @@ def prepare_demo(work: Path) -> dict:
             out=ingest,
         )
     if not (masks / "instances.csv").exists():
+        from surfphase.masks.stage import run_mask_stage
+
         run_mask_stage(ingest, masks)
     return {"session": sess, "ingest": ingest, "masks": masks, "cameras": cams, "fps": fps}
 

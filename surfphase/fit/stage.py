@@ -16,7 +16,17 @@ Per frame ``t`` (in order):
 
 Units: positions metres (lab frame), time seconds, velocity m/s. The SDF value ``f`` and
 the sharpness ``γ`` are optimised in units of the scene extent ``L`` (m,
-:func:`surfphase.fit.init.scene_extent`); see :mod:`surfphase.fit.model`.
+:func:`surfphase.fit.init.scene_extent`: the radius of the sphere holding every bubble
+triangulated from the first frame's masks); see :mod:`surfphase.fit.model`.
+
+Only the bubbles are reconstructed. The rest of each input view (backlight, heated
+plate) is a per-view background image, the per-pixel temporal median of the pixels the
+masks call background, composited behind the surfels: ``I = C + (1 − α)·B_c``.
+
+Determinism: one seeded ``torch.Generator`` drives every random choice; each frame starts
+a fresh Adam, so a checkpoint holds the surfels, the generator state and the per-frame
+records, and a resumed run reproduces an uninterrupted one bit for bit (CPU, same
+thread count).
 """
 
 from __future__ import annotations
@@ -48,10 +58,10 @@ DEFAULTS: dict = {
     "use_sdf": True,  # False: "no SDF" ablation, opacity optimised directly
     "guidance": True,  # False: "no bubble guidance" ablation, plain per-frame refit
     # -- iterations -------------------------------------------------------------------
-    "iters_first": 500,  # Adam steps at frame 0 (with densification)
-    "iters_next": 80,  # Adam steps at every later frame
+    "iters_first": 150,  # Adam steps at frame 0 (with densification)
+    "iters_next": 30,  # Adam steps at every later frame
     # -- initialisation ---------------------------------------------------------------
-    "n_init": 3000,  # at most this many surfels seeded on the visual hull
+    "n_init": 1500,  # at most this many surfels seeded on the visual hull
     "hull_grid": 48,  # hull voxels along the longest bounding-box side
     "init_scale": 0.8,  # initial surfel std, in hull-voxel spacings
     "init_sdf": 0.1,  # initial |f|, units of L (opacity 1/2 at the initial γ)
@@ -59,7 +69,11 @@ DEFAULTS: dict = {
     "spawn_max_surfels": 400,  # at most this many surfels per newly appearing bubble
     "spawn_grid": 24,  # hull voxels per newly appearing bubble
     # -- learning rates (2DGS's, f: 0.05) ---------------------------------------------
-    "lr_means": 2e-3,  # units of L per step: the metric rate is lr_means·L m
+    # Position: lr_means·L metres per step. 2DGS uses 1.6e-4 × its camera extent (1.1 ×
+    # the largest camera-centre distance from their mean: ≈ 2 cm for the reference rig);
+    # L here is the bubbles' extent (≈ 3.7 mm on the demo), so 1e-3·L ≈ 3.7 µm per
+    # step is about 2DGS's metric rate (3.2 µm) for this rig.
+    "lr_means": 1e-3,
     "lr_means_decay": 0.1,  # exponential decay of lr_means over each frame's steps
     "lr_log_scales": 5e-3,
     "lr_quats": 1e-3,
@@ -76,7 +90,9 @@ DEFAULTS: dict = {
     "w_gamma": 0.01,  # on L_γ/γ_m (relative hinge, dimensionless)
     "w_proj": 0.1,  # on L_proj (units of L)
     "geo_from": 0.3,  # fraction of frame 0's steps before geometry losses start
-    "proj_threshold": 0.1,  # L_proj ignores depth errors above this many L (metres/L)
+    # L_proj ignores (point, view) pairs whose depth error exceeds proj_threshold·L
+    # metres: the paper's 0.1 in normalised scene units, here units of L.
+    "proj_threshold": 0.1,
     # -- densification (frame 0 only) -------------------------------------------------
     "densify": True,
     "densify_start": 0.1,  # fractions of iters_first
@@ -86,7 +102,7 @@ DEFAULTS: dict = {
     "grow_scale": 0.01,  # units of L
     "prune_opacity": 0.05,
     "prune_scale": 0.1,  # units of L
-    "max_surfels": 6000,
+    "max_surfels": 3000,
     # -- bubble guidance --------------------------------------------------------------
     "v_init_nucleation": [0.03, 0.03, 0.0],  # m/s, lab frame: bubble 0 before history
     "v_init_bubble": [0.07, 0.3, 0.0],  # m/s, lab frame: other bubbles before history

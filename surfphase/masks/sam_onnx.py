@@ -25,6 +25,7 @@ stays right for every aspect ratio even where an export froze the crop size.
 
 from __future__ import annotations
 
+import functools
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -88,6 +89,20 @@ def to_sam_coords(uv: np.ndarray, height: int, width: int) -> np.ndarray:
     out[..., 0] *= w2 / width
     out[..., 1] *= h2 / height
     return out.astype(np.float32)
+
+
+@functools.lru_cache(maxsize=16)
+def resample_matrix(n_low: int, n_crop: int, n_out: int) -> np.ndarray:
+    """(n_out, n_low) matrix of SAM's 1-D mask post-processing along one axis.
+
+    Linear (``align_corners=False``) resampling of ``n_low`` samples to
+    ``SAM_IMAGE_SIZE``, keeping the first ``n_crop``, then linear resampling to
+    ``n_out``; built by pushing the identity through the same torch operations.
+    """
+    eye = torch.eye(n_low, dtype=torch.float64).unsqueeze(1)  # (n_low, 1, n_low)
+    up = F.interpolate(eye, size=SAM_IMAGE_SIZE, mode="linear", align_corners=False)
+    out = F.interpolate(up[..., :n_crop], size=n_out, mode="linear", align_corners=False)
+    return out[:, 0, :].T.numpy().astype(np.float32)
 
 
 def _session(path: Path, what: str, key: str) -> ort.InferenceSession:
@@ -228,16 +243,16 @@ class SamOnnx:
         """(B, K, h, w) low-resolution logits → (B, K, H, W) logits at the image size.
 
         SAM's post-processing: bilinear to 1024×1024, crop the padding to the resized
-        image (h', w'), bilinear to (H, W).
+        image (h', w'), bilinear to (H, W). Bilinear resampling is separable and
+        linear, so the chain is applied as two small matrices per axis
+        (:func:`resample_matrix`), without the 1024² intermediate.
         """
         h, w = orig_hw
         h2, w2 = resized_shape(h, w)
-        t = torch.from_numpy(np.ascontiguousarray(low_res, np.float32))
-        t = F.interpolate(t, size=(SAM_IMAGE_SIZE, SAM_IMAGE_SIZE), mode="bilinear",
-                          align_corners=False)
-        t = t[..., :h2, :w2]
-        t = F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False)
-        return t.numpy()
+        mr = resample_matrix(low_res.shape[-2], h2, h)
+        mc = resample_matrix(low_res.shape[-1], w2, w)
+        return np.einsum("ij,bkjl,ml->bkim", mr, low_res.astype(np.float32), mc,
+                         optimize=True).astype(np.float32)
 
     def predict_points(
         self, embedding: np.ndarray, points: np.ndarray, orig_hw: tuple[int, int],

@@ -222,7 +222,7 @@ def write_campaign(
     if out.exists() and not out.is_dir():
         raise ValueError(f"{out}: exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise ValueError(f"{out}: folder exists and is not empty (pass overwrite)")
+        raise ValueError(f"{out}: folder exists and is not empty (use --force / overwrite=True)")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
     try:

@@ -2,8 +2,8 @@
 
 Each clip is one view of its own :class:`~surfphase.synth.bubbles.BubbleScene`
 (own seed, bubble count and frame rate) from a random camera: any azimuth about
-the vertical, 45–80 mm away, 0–6 mm above the scene centre, focal length ±15 %,
-mild random lens distortion. Frames are rendered like the held-out views
+the vertical, 0.75–1.35× the reference rig's distance, somewhat above the scene
+centre, field of view ±15 % of the rig's, mild random lens distortion. Frames are rendered like the held-out views
 (2× supersampled, area-averaged) at ``size × size`` pixels.
 """
 
@@ -18,18 +18,26 @@ from surfphase.cameras import Camera, look_at
 from surfphase.io import atomic_path
 from surfphase.synth import shadowgraph
 from surfphase.synth.bubbles import BubbleScene
-from surfphase.synth.rig import SCENE_CENTER
+from surfphase.synth.rig import SCENE_CENTER, default_rig
 
 
 def random_clip_camera(rng: np.random.Generator, size: int) -> Camera:
-    """A random camera of ``size × size`` pixels looking at the scene (see module doc)."""
+    """A random camera of ``size × size`` pixels looking at the scene (see module doc).
+
+    Distance and focal length vary about the reference rig's cam0 (0.75–1.35× its
+    distance, field of view within ±15 % of its), so the scene fills a similar part
+    of the frame.
+    """
+    ref = default_rig(native=size)["cam0"]
+    d_ref = float(np.linalg.norm(ref.center - SCENE_CENTER))
     az = rng.uniform(0, 2 * np.pi)
-    dist = rng.uniform(0.045, 0.08)
-    eye = SCENE_CENTER + np.array([dist * np.sin(az), rng.uniform(0.0, 0.006), dist * np.cos(az)])
+    dist = d_ref * rng.uniform(0.75, 1.35)
+    eye = SCENE_CENTER + np.array(
+        [dist * np.sin(az), rng.uniform(0.0, 0.2) * dist, dist * np.cos(az)]
+    )
     target = SCENE_CENTER + np.array([rng.uniform(-1, 1) * 1e-3, rng.uniform(-1, 1.5) * 1e-3, 0.0])
-    # ~1800 px at 512 for 60 mm; keep the field of view similar at other distances.
-    fx = 1800.0 * size / 512 * (dist / 0.06) * rng.uniform(0.85, 1.15)
-    dist_coef = np.array([rng.uniform(-0.3, 0.05), rng.uniform(0, 0.3), 0.0, 0.0, 0.0])
+    fx = ref.K[0, 0] * (dist / d_ref) * rng.uniform(0.85, 1.15)
+    dist_coef = np.array([rng.uniform(-0.2, 0.05), rng.uniform(0, 0.15), 0.0, 0.0, 0.0])
     return look_at("clip", eye, target, fx=fx, width=size, height=size, dist=dist_coef)
 
 

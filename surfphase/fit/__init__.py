@@ -1,0 +1,18 @@
+"""Stage-1 fit (DESIGN.md §3–4): SDF surfels, bubble-guided tracking, metric velocities.
+
+* :mod:`surfphase.fit.model` — :class:`~surfphase.fit.model.SurfelModel` and
+  :func:`~surfphase.fit.model.sdf_to_opacity` (``o = 4e^{−γf}/(1+e^{−γf})²``);
+* :mod:`surfphase.fit.losses` — L1, SSIM/D-SSIM, normal consistency, the ``L_γ`` hinge,
+  the projection loss;
+* :mod:`surfphase.fit.densify` — densification strategies
+  (:class:`~surfphase.fit.densify.Densify2DGS`, :class:`~surfphase.fit.densify.NoDensify`);
+* :mod:`surfphase.fit.init` — surfel seeds on the visual hull of the masks, scene extent;
+* :mod:`surfphase.fit.binding` — binding surfels to bubbles, centroids, velocities,
+  advection;
+* :mod:`surfphase.fit.stage` — :func:`~surfphase.fit.stage.run_fit`, the checkpointed
+  per-frame loop, and :data:`~surfphase.fit.stage.DEFAULTS` (every hyperparameter);
+* :mod:`surfphase.fit.outputs` — ``surfels.npz`` (format table), ``bubbles.csv``,
+  ``curves.csv``, ``summary.json``, ``renders/``;
+* :mod:`surfphase.fit.bench` — ``surfphase bench fit`` (the only module that imports
+  :mod:`surfphase.synth`, to build its ground truth).
+"""
