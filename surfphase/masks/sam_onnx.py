@@ -251,8 +251,7 @@ class SamOnnx:
         h2, w2 = resized_shape(h, w)
         mr = resample_matrix(low_res.shape[-2], h2, h)
         mc = resample_matrix(low_res.shape[-1], w2, w)
-        return np.einsum("ij,bkjl,ml->bkim", mr, low_res.astype(np.float32), mc,
-                         optimize=True).astype(np.float32)
+        return np.matmul(np.matmul(mr, low_res.astype(np.float32)), mc.T)
 
     def predict_points(
         self, embedding: np.ndarray, points: np.ndarray, orig_hw: tuple[int, int],
