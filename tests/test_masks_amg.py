@@ -65,8 +65,10 @@ def test_postprocess_and_paint():
     assert len(kept) == 2 and s.tolist() == [0.95, 0.9]
     labels, ls = amg.masks_to_labels(kept, s)
     assert (labels[other] == 0).all() and (labels[disk] == 1).all()
-    assert (labels[~(disk | other)] == -1).all() and ls.tolist() == [np.float32(0.95),
-                                                                      np.float32(0.9)]
+    assert (labels[~(disk | other)] == -1).all() and ls.tolist() == [
+        np.float32(0.95),
+        np.float32(0.9),
+    ]
 
 
 def test_filter_candidates():

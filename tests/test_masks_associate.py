@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from masks_scene import rig, rising, write_ingest
+from test_masks_scene import rig, rising, write_ingest
 
 from surfphase.masks.associate import associate, fundamental_matrix, symmetric_epipolar_distance
 from surfphase.masks.classical import segment_frame
@@ -74,8 +74,19 @@ def test_ids_agree_across_views_and_frames(tmp_path, use_cameras):
         assert len(set(a)) == 1 and a[0] >= 1  # one id through time
         seen.add(a[0])
     assert len(seen) == len(SPHERES) - 1  # distinct bubbles
-    assert list(inst.columns) == ["frame", "camera", "bubble", "area", "cx", "cy", "x0", "y0",
-                                  "x1", "y1", "score"]
+    assert list(inst.columns) == [
+        "frame",
+        "camera",
+        "bubble",
+        "area",
+        "cx",
+        "cy",
+        "x0",
+        "y0",
+        "x1",
+        "y1",
+        "score",
+    ]
     assert len(events) == 0
 
 
@@ -110,3 +121,19 @@ def test_merge_is_recorded_and_gets_a_new_id(tmp_path):
     row = merges.iloc[0]
     assert str(ids["cam0"][2][-1]) in row.children.split("+")
     assert set(row.parents.split("+")) & {str(ids["cam0"][0][0]), str(ids["cam0"][1][0])}
+
+
+def test_plate_image_marks_the_nucleation_region_without_cameras(tmp_path):
+    truth = write_ingest(tmp_path, SPHERES[:3], 4)
+    labels, scores = _segment(tmp_path, truth)
+    plates = {}
+    for c, tr in truth.items():
+        rows = np.nonzero((tr == 0).any(axis=(0, 2)))[0]
+        plate = np.zeros(tr.shape[1:], bool)
+        plate[rows.max() + 1 :] = True  # the plate's image starts under the attached sphere
+        plates[c] = plate
+    params = {"nucleation_margin_frac": 0.0}  # the fallback alone would not catch it
+    out, _, _ = associate(labels, scores, None, params, plates)
+    for c in truth:
+        assert set(_ids(truth[c], out[c], 0)) == {0}
+        assert 0 not in _ids(truth[c], out[c], 1) + _ids(truth[c], out[c], 2)

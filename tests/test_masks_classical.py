@@ -18,12 +18,16 @@ def shadowgraph(h, w, bubbles, seed=0, noise=0.01, plate_row=None):
     Returns the image (float32) and truth labels (pixel-centre coverage ≥ 1/2).
     """
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    bg = 0.75 + 0.15 * (xx / w) - 0.1 * (yy / h) - 0.15 * (
-        ((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (w * w / 4 + h * h / 4))
+    bg = (
+        0.75
+        + 0.15 * (xx / w)
+        - 0.1 * (yy / h)
+        - 0.15 * (((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (w * w / 4 + h * h / 4))
+    )
     img = bg.copy()
     if plate_row is not None:
         img[plate_row:] = 0.26 * bg[plate_row:]
-        img[h - max(2, h // 16):] = 0.03
+        img[h - max(2, h // 16) :] = 0.03
     truth = np.full((h, w), -1, np.int32)
     off = (np.arange(SS) + 0.5) / SS - 0.5
     oy, ox = np.meshgrid(off, off, indexing="ij")
@@ -51,8 +55,15 @@ def best_iou(truth, labels, k):
     return (t & p).sum() / (t | p).sum()
 
 
-BUBBLES_128 = [(30, 40, 10), (80, 40, 12), (101, 40, 10), (60, 100, 15), (20, 110, 5),
-               (100, 95, 8), (111, 101, 6)]
+BUBBLES_128 = [
+    (30, 40, 10),
+    (80, 40, 12),
+    (101, 40, 10),
+    (60, 100, 15),
+    (20, 110, 5),
+    (100, 95, 8),
+    (111, 101, 6),
+]
 
 
 @pytest.mark.parametrize("scale", [1, 4])
@@ -82,8 +93,12 @@ def test_integer_frames_and_bright_polarity():
 def test_background_fit_follows_backlight_not_bubbles():
     img, truth = shadowgraph(128, 128, BUBBLES_128, noise=0.0)
     yy, xx = np.mgrid[0:128, 0:128].astype(np.float64)
-    true_bg = 0.75 + 0.15 * (xx / 128) - 0.1 * (yy / 128) - 0.15 * (
-        ((xx - 64) ** 2 + (yy - 64) ** 2) / (2 * 64 * 64))
+    true_bg = (
+        0.75
+        + 0.15 * (xx / 128)
+        - 0.1 * (yy / 128)
+        - 0.15 * (((xx - 64) ** 2 + (yy - 64) ** 2) / (2 * 64 * 64))
+    )
     bg = classical.estimate_background(img)
     assert np.max(np.abs(bg - true_bg)[truth < 0]) < 0.01
 

@@ -3,8 +3,8 @@
 The tiny encoder turns the (normalised, padded) 1024² input back into pixel values
 and returns the local *darkness* in every channel of a 1×256×64×64 embedding. The
 tiny decoder follows ``SamOnnxModel``'s conventions — points shifted by +0.5 and
-divided by 1024, padding point labelled −1, masks post-processed to
-``orig_im_size`` — and returns four tokens: token 0 a disk of radius ``R[0]`` around
+divided by 1024, padding point labelled −1, ``masks`` at ``orig_im_size`` — and
+returns four tokens: token 0 a disk of radius ``R[0]`` around
 the prompt (to check the coordinate transforms), tokens 1–3 the dark region within
 radius ``R[k]`` of the prompt, with a predicted IoU growing with the darkness at
 the prompt. A correct pipeline must therefore find every dark disk.
@@ -66,57 +66,85 @@ class TinyEncoderWithPreprocess(nn.Module):
 
 
 class TinyDecoder(nn.Module):
-    def forward(self, image_embeddings, point_coords, point_labels, mask_input,
-                has_mask_input, orig_im_size):
+    def forward(
+        self, image_embeddings, point_coords, point_labels, mask_input, has_mask_input, orig_im_size
+    ):
         b = point_coords.shape[0]
-        dark = F.interpolate(image_embeddings[:, :1], size=(256, 256), mode="bilinear",
-                             align_corners=False).expand(b, 1, 256, 256)
+        dark = F.interpolate(
+            image_embeddings[:, :1], size=(256, 256), mode="bilinear", align_corners=False
+        ).expand(b, 1, 256, 256)
         # Low-res pixel centres in the 1024 frame (continuous coordinates).
         c = (torch.arange(256, dtype=torch.float32) + 0.5) * 4.0
         pt = point_coords[:, 0] + 0.5  # as SamOnnxModel._embed_points
-        d = torch.sqrt((c.view(1, 1, 256) - pt[:, 0].view(b, 1, 1)) ** 2
-                       + (c.view(1, 256, 1) - pt[:, 1].view(b, 1, 1)) ** 2)
+        d = torch.sqrt(
+            (c.view(1, 1, 256) - pt[:, 0].view(b, 1, 1)) ** 2
+            + (c.view(1, 256, 1) - pt[:, 1].view(b, 1, 1)) ** 2
+        )
         gate = 40.0 * (dark[:, 0] - DARK_LEVEL)
         toks = [(RADII[0] - d) / 4.0]
         for r in RADII[1:]:
             toks.append(torch.minimum((r - d) / 4.0, gate))
         low = torch.stack(toks, dim=1)
         # Wiring: the padding point must be there, and no mask prompt.
-        ok = (point_labels[:, 1] == -1).float() * (1.0 - has_mask_input) * (
-            point_labels[:, 0] == 1).float()
+        ok = (
+            (point_labels[:, 1] == -1).float()
+            * (1.0 - has_mask_input)
+            * (point_labels[:, 0] == 1).float()
+        )
         g = (pt / 1024.0) * 2 - 1
         at = F.grid_sample(dark, g.view(b, 1, 1, 2), align_corners=False).view(b)
         at = torch.clamp((at - 0.2) / 0.6, 0.0, 1.0)
         iou = torch.stack([torch.ones_like(at)] + [at * (0.9 + 0.03 * k) for k in (1, 2, 3)], 1)
         iou = iou * ok.view(b, 1) + 0.0 * mask_input.mean()
-        up = F.interpolate(low, size=(1024, 1024), mode="bilinear", align_corners=False)
+        # ``masks`` at orig_im_size, cheaply (low-res crop resized directly): the
+        # pipeline rebuilds masks from ``low_res_masks`` with SAM's exact chain.
         scale = 1024.0 / torch.max(orig_im_size)
-        pre = torch.floor(orig_im_size * scale + 0.5).to(torch.int64)
-        up = up[..., : pre[0], : pre[1]]
+        pre = torch.floor(orig_im_size * scale / 4.0 + 0.5).to(torch.int64)
         hw = orig_im_size.to(torch.int64)
-        masks = F.interpolate(up, size=(hw[0], hw[1]), mode="bilinear", align_corners=False)
+        masks = F.interpolate(
+            low[..., : pre[0], : pre[1]], size=(hw[0], hw[1]), mode="bilinear", align_corners=False
+        )
         return masks, iou, low
 
 
 def _export(module, args, path, names, outputs, dynamic_axes=None):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        torch.onnx.export(module, args, str(path), input_names=names, output_names=outputs,
-                          dynamic_axes=dynamic_axes, opset_version=17, dynamo=False)
+        torch.onnx.export(
+            module,
+            args,
+            str(path),
+            input_names=names,
+            output_names=outputs,
+            dynamic_axes=dynamic_axes,
+            opset_version=17,
+            dynamo=False,
+        )
 
 
-def build_tiny_sam(folder: Path, preprocess: bool = False, dynamic_batch: bool = False
-                   ) -> tuple[Path, Path]:
+def build_tiny_sam(
+    folder: Path, preprocess: bool = False, dynamic_batch: bool = False
+) -> tuple[Path, Path]:
     """Write tiny encoder/decoder ONNX files with SAM's input and output names."""
     folder.mkdir(parents=True, exist_ok=True)
     enc = folder / ("enc_pre.onnx" if preprocess else "enc.onnx")
     if preprocess:
-        _export(TinyEncoderWithPreprocess(), (torch.rand(683, 1024, 3) * 255,), enc,
-                ["input_image"], ["image_embeddings"],
-                {"input_image": {0: "image_height", 1: "image_width"}})
+        _export(
+            TinyEncoderWithPreprocess(),
+            (torch.rand(683, 1024, 3) * 255,),
+            enc,
+            ["input_image"],
+            ["image_embeddings"],
+            {"input_image": {0: "image_height", 1: "image_width"}},
+        )
     else:
-        _export(TinyEncoder(), (torch.randn(1, 3, 1024, 1024),), enc, ["input_image"],
-                ["image_embeddings"])
+        _export(
+            TinyEncoder(),
+            (torch.randn(1, 3, 1024, 1024),),
+            enc,
+            ["input_image"],
+            ["image_embeddings"],
+        )
     dec = folder / ("dec_batch.onnx" if dynamic_batch else "dec.onnx")
     dummy = (
         torch.rand(1, 256, 64, 64),
@@ -128,11 +156,20 @@ def build_tiny_sam(folder: Path, preprocess: bool = False, dynamic_batch: bool =
     )
     axes = {"point_coords": {1: "num_points"}, "point_labels": {1: "num_points"}}
     if dynamic_batch:
-        axes = {"point_coords": {0: "batch", 1: "num_points"},
-                "point_labels": {0: "batch", 1: "num_points"},
-                "mask_input": {0: "batch"}, "has_mask_input": {0: "batch"}}
-    _export(TinyDecoder(), dummy, dec, list(sam_onnx.DECODER_INPUTS),
-            ["masks", "iou_predictions", "low_res_masks"], axes)
+        axes = {
+            "point_coords": {0: "batch", 1: "num_points"},
+            "point_labels": {0: "batch", 1: "num_points"},
+            "mask_input": {0: "batch"},
+            "has_mask_input": {0: "batch"},
+        }
+    _export(
+        TinyDecoder(),
+        dummy,
+        dec,
+        list(sam_onnx.DECODER_INPUTS),
+        ["masks", "iou_predictions", "low_res_masks"],
+        axes,
+    )
     return enc, dec
 
 
@@ -189,8 +226,9 @@ def test_automatic_masks_find_every_bubble(tiny_sam):
     assert not model.dynamic_batch  # as segment-anything's export: one prompt per call
     disks = [(30, 48, 14), (80, 40, 12), (130, 55, 16)]
     img, truth = dark_disks(96, 160, disks)
-    labels, scores = model.generate(img, {"points_per_side": 10, "points_per_batch": 16,
-                                          "min_region_area": 10})
+    labels, scores = model.generate(
+        img, {"points_per_side": 10, "points_per_batch": 16, "min_region_area": 10}
+    )
     assert labels.shape == img.shape and labels.dtype == np.int32
     assert labels.max() + 1 == len(disks) == len(scores)
     for k in range(len(disks)):
@@ -239,8 +277,7 @@ def test_encoder_of_wrong_input_size_is_a_clear_error(tiny_sam, tmp_path):
         def forward(self, input_image):
             return F.avg_pool2d(input_image.mean(1, keepdim=True), 8).expand(1, 256, 64, 64)
 
-    _export(Enc512(), (torch.randn(1, 3, 512, 512),), small, ["input_image"],
-            ["image_embeddings"])
+    _export(Enc512(), (torch.randn(1, 3, 512, 512),), small, ["input_image"], ["image_embeddings"])
     model = SamOnnx(small, dec)
     with pytest.raises(ValueError, match="enc512.onnx.*1024"):
         model.embed(np.zeros((64, 64), np.float32))
@@ -252,16 +289,25 @@ def test_mask_stage_runs_with_the_sam_backend(tiny_sam, tmp_path):
     """The stage, SAM backend, tiny models: every dark sphere found, ids agree."""
     import json
 
-    from masks_scene import rising, write_ingest
+    from test_masks_scene import rising, write_ingest
 
     from surfphase.masks.stage import run_mask_stage
 
     enc, dec = tiny_sam
     spheres = [rising(-0.002, 0.003, 0.0, 0.002), rising(0.0025, 0.0095, 0.0, 0.002)]
     truth = write_ingest(tmp_path / "ingest", spheres, 2, size=64, core=False)
-    params = {"backend": "sam", "overlay_frames": 1,
-              "sam": {"encoder": str(enc), "decoder": str(dec), "points_per_side": 8,
-                      "min_region_area": 4}}
+    params = {
+        "backend": "sam",
+        "overlay_frames": 1,
+        # Small bubbles in a 64-pixel frame: their edge band is a larger share.
+        "sam": {
+            "encoder": str(enc),
+            "decoder": str(dec),
+            "points_per_side": 8,
+            "min_region_area": 4,
+            "stability_score_thresh": 0.85,
+        },
+    }
     run_mask_stage(tmp_path / "ingest", tmp_path / "out", params)
     ids = {}
     for c in truth:
@@ -282,14 +328,17 @@ def test_mask_stage_runs_with_the_sam_backend(tiny_sam, tmp_path):
 
 
 def test_sam_stage_without_models_says_where_to_put_them(tmp_path):
-    from masks_scene import rising, write_ingest
+    from test_masks_scene import rising, write_ingest
 
     from surfphase.masks.stage import run_mask_stage
 
     write_ingest(tmp_path / "ingest", [rising(0.0, 0.005, 0.0, 0.001)], 1, size=32)
     with pytest.raises(FileNotFoundError, match=r"masks\.sam\.encoder.*samexporter"):
-        run_mask_stage(tmp_path / "ingest", tmp_path / "out",
-                       {"backend": "sam", "sam": {"encoder": str(tmp_path / "e.onnx")}})
+        run_mask_stage(
+            tmp_path / "ingest",
+            tmp_path / "out",
+            {"backend": "sam", "sam": {"encoder": str(tmp_path / "e.onnx")}},
+        )
     assert not (tmp_path / "out").exists()
 
 
@@ -299,7 +348,8 @@ def test_low_res_post_processing_matches_sam_chain(tiny_sam):
     low = np.random.default_rng(0).normal(size=(2, 4, 256, 256)).astype(np.float32)
     for h, w in ((96, 160), (130, 70), (64, 64)):
         h2, w2 = resized_shape(h, w)
-        t = F.interpolate(torch.from_numpy(low), size=(1024, 1024), mode="bilinear",
-                          align_corners=False)[..., :h2, :w2]
+        t = F.interpolate(
+            torch.from_numpy(low), size=(1024, 1024), mode="bilinear", align_corners=False
+        )[..., :h2, :w2]
         ref = F.interpolate(t, size=(h, w), mode="bilinear", align_corners=False).numpy()
         np.testing.assert_allclose(model.upscale_low_res(low, (h, w)), ref, atol=2e-4)

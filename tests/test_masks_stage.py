@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
-from masks_scene import rising, write_ingest
+from test_masks_scene import rising, write_ingest
 
 from surfphase.cli import main
 from surfphase.masks.stage import DEFAULTS, merge_params, run_mask_stage
@@ -39,21 +39,43 @@ def test_command_writes_every_output(ingest, tmp_path, capsys):
         assert (lab[truth[c] < 0] >= 0).mean() < 0.01
         assert set(np.unique(lab)) == {-1, 0, 1, 2}
     inst = pd.read_csv(out / "instances.csv")
-    assert list(inst.columns) == ["frame", "camera", "bubble", "area", "cx", "cy", "x0", "y0",
-                                  "x1", "y1", "score"]
+    assert list(inst.columns) == [
+        "frame",
+        "camera",
+        "bubble",
+        "area",
+        "cx",
+        "cy",
+        "x0",
+        "y0",
+        "x1",
+        "y1",
+        "score",
+    ]
     assert len(inst) == 6 * 2 * 3
     # The instance table agrees with the label stacks.
     lab0 = np.load(out / "cam0_labels.npy")
     for r in inst[inst.camera == "cam0"].itertuples():
         m = lab0[r.frame] == r.bubble
         ys, xs = np.nonzero(m)
-        assert r.area == m.sum() and (r.x0, r.y0, r.x1, r.y1) == (xs.min(), ys.min(), xs.max(),
-                                                                  ys.max())
+        assert r.area == m.sum() and (r.x0, r.y0, r.x1, r.y1) == (
+            xs.min(),
+            ys.min(),
+            xs.max(),
+            ys.max(),
+        )
         assert r.cx == pytest.approx(xs.mean(), abs=1e-3)
-    assert list(pd.read_csv(out / "events.csv").columns) == ["frame", "camera", "event",
-                                                             "parents", "children"]
-    assert sorted(p.name for p in (out / "overlays").iterdir()) == ["frame_00000.png",
-                                                                    "frame_00005.png"]
+    assert list(pd.read_csv(out / "events.csv").columns) == [
+        "frame",
+        "camera",
+        "event",
+        "parents",
+        "children",
+    ]
+    assert sorted(p.name for p in (out / "overlays").iterdir()) == [
+        "frame_00000.png",
+        "frame_00005.png",
+    ]
     info = json.loads((out / "masks.json").read_text())
     assert info["session"] == "s01" and info["bubbles"] == 2
     assert info["params"]["associate"]["coast_frames"] == 4

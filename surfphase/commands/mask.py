@@ -69,8 +69,15 @@ def _ingest_for_bench(campaign: Path, session: str, scale: float, out: Path):
     cams = {c: true[c] for c in ("cam0", "cam1")}
     videos = {c: campaign / row[c] for c in cams}
     if not (out / "meta.json").is_file():
-        ingest_session(session, cams, videos, float(row["fps"]), frames=row["frames"] or None,
-                       scale=scale, out=out)
+        ingest_session(
+            session,
+            cams,
+            videos,
+            float(row["fps"]),
+            frames=row["frames"] or None,
+            scale=scale,
+            out=out,
+        )
     return out, gt, cams
 
 
@@ -106,17 +113,25 @@ def _bench(args: argparse.Namespace) -> int:
     pred = {c: np.load(work / "masks" / f"{c}_labels.npy") for c in true}
     results["accuracy"] = mask_metrics(truth, pred)
     acc = results["accuracy"]
-    print(f"session {args.session} of {campaign} ({params['backend']} backend, "
-          f"{pred['cam0'].shape[2]}x{pred['cam0'].shape[1]} px, {pred['cam0'].shape[0]} frames)")
-    print(f"  mean mask IoU per matched bubble : {acc['mean_iou']:.3f} "
-          f"({acc['matched_bubble_frames']} matched of {acc['truth_bubble_frames']} truth "
-          f"bubble-frames, recall {acc['detection_recall']:.3f}, "
-          f"{acc['false_positives']} unmatched predictions)")
-    print(f"  cross-view identity correct      : {acc['cross_view_identity']:.3f} "
-          f"of {acc['cross_view_bubble_frames']} bubble-frames seen in both views")
-    print(f"  same id over a bubble's life     : {acc['temporal_identity_frames']:.3f} of "
-          f"bubble-frames (per bubble: mean {acc['temporal_identity_mean']:.3f}, min "
-          f"{acc['temporal_identity_min']:.3f}, {acc['tracked_bubbles']} bubble-views)")
+    print(
+        f"session {args.session} of {campaign} ({params['backend']} backend, "
+        f"{pred['cam0'].shape[2]}x{pred['cam0'].shape[1]} px, {pred['cam0'].shape[0]} frames)"
+    )
+    print(
+        f"  mean mask IoU per matched bubble : {acc['mean_iou']:.3f} "
+        f"({acc['matched_bubble_frames']} matched of {acc['truth_bubble_frames']} truth "
+        f"bubble-frames, recall {acc['detection_recall']:.3f}, "
+        f"{acc['false_positives']} unmatched predictions)"
+    )
+    print(
+        f"  cross-view identity correct      : {acc['cross_view_identity']:.3f} "
+        f"of {acc['cross_view_bubble_frames']} bubble-frames seen in both views"
+    )
+    print(
+        f"  same id over a bubble's life     : {acc['temporal_identity_frames']:.3f} of "
+        f"bubble-frames (per bubble: mean {acc['temporal_identity_mean']:.3f}, min "
+        f"{acc['temporal_identity_min']:.3f}, {acc['tracked_bubbles']} bubble-views)"
+    )
     if not args.skip_timing:
         results["timing"] = {}
         for scale, size in ((0.25, 128), (1.0, 512)):
@@ -125,20 +140,22 @@ def _bench(args: argparse.Namespace) -> int:
             n = min(int(args.timing_frames), stack.shape[0])
             cp = params["classical"]
             t0 = time.perf_counter()
-            ref = classical.session_reference(stack, cp["reference_percentile"],
-                                              cp["reference_max_frames"])
-            bg = classical.static_background(ref, cp)
+            bg = classical.session_background(stack, cp)
             t_session = time.perf_counter() - t0
             t0 = time.perf_counter()
             for t in range(n):
                 classical.segment_frame(np.asarray(stack[t]), cp, bg)
             per = (time.perf_counter() - t0) / n
             results["timing"][f"{size}x{size}"] = {
-                "seconds_per_frame": round(per, 4), "session_background_seconds":
-                round(t_session, 4), "frames": n}
-            print(f"  classical time per frame {size}x{size}: {per * 1e3:.1f} ms "
-                  f"(+ {t_session * 1e3:.0f} ms once per session and camera for the "
-                  f"background; {n} frames, 1 OpenCV thread)")
+                "seconds_per_frame": round(per, 4),
+                "session_background_seconds": round(t_session, 4),
+                "frames": n,
+            }
+            print(
+                f"  classical time per frame {size}x{size}: {per * 1e3:.1f} ms "
+                f"(+ {t_session * 1e3:.0f} ms once per session and camera for the "
+                f"background; {n} frames, 1 OpenCV thread)"
+            )
     if args.json:
         from surfphase.io import atomic_write_json
 
@@ -155,8 +172,11 @@ def register_bench(bench_subparsers) -> None:
         "IoU per matched bubble, cross-view identity and temporal identity; then the "
         "classical backend's time per frame at 128×128 and 512×512.",
     )
-    p.add_argument("--campaign", default="demo",
-                   help="campaign folder (the demo preset is generated there if missing)")
+    p.add_argument(
+        "--campaign",
+        default="demo",
+        help="campaign folder (the demo preset is generated there if missing)",
+    )
     p.add_argument("--session", default="session01")
     p.add_argument("--work", default=None, help="scratch folder (default: CAMPAIGN/_bench_masks)")
     p.add_argument("--config", help="config YAML; its masks: section is used")

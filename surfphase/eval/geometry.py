@@ -53,7 +53,9 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             elements.append({"name": tok[1], "count": int(tok[2]), "props": []})
         elif tok[0] == "property":
             if tok[1] == "list":
-                elements[-1]["props"].append((tok[4], "list", _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]]))
+                elements[-1]["props"].append(
+                    (tok[4], "list", _PLY_TYPES[tok[2]], _PLY_TYPES[tok[3]])
+                )
             else:
                 elements[-1]["props"].append((tok[2], _PLY_TYPES[tok[1]], None, None))
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
@@ -98,7 +100,9 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
                 verts = np.stack([rec[c].astype(np.float64) for c in "xyz"], axis=1)
             continue
         if len(el["props"]) != 1:
-            raise ValueError(f"{path}: binary PLY element {el['name']!r}: only one list property is supported")
+            raise ValueError(
+                f"{path}: binary PLY element {el['name']!r}: only one list property is supported"
+            )
         _, _, ct, it = el["props"][0]
         ctype, itype = np.dtype(bo + ct), np.dtype(bo + it)
         polys = []

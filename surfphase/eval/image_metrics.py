@@ -57,9 +57,7 @@ def _local_mean(img: np.ndarray, w: np.ndarray) -> np.ndarray:
     return correlate1d(out, w, axis=1, mode="constant")[:, r : img.shape[1] - r]
 
 
-def ssim_map(
-    pred: np.ndarray, target: np.ndarray, data_range: float = 1.0
-) -> np.ndarray:
+def ssim_map(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0) -> np.ndarray:
     """Per-position SSIM of two (H, W) images: (H − 10, W − 10) for the 11×11 window."""
     a, b = _pair(pred, target)
     if a.ndim != 2:
@@ -83,7 +81,9 @@ def ssim(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0) -> float
     a, b = _pair(pred, target)
     if a.ndim == 2:
         return float(ssim_map(a, b, data_range).mean())
-    return float(np.mean([ssim_map(a[..., c], b[..., c], data_range).mean() for c in range(a.shape[2])]))
+    return float(
+        np.mean([ssim_map(a[..., c], b[..., c], data_range).mean() for c in range(a.shape[2])])
+    )
 
 
 def image_metrics(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0) -> dict:

@@ -363,15 +363,18 @@ def _load_checkpoint(ckpt: Path, key: str) -> tuple[dict | None, list[dict]]:
     sp = ckpt / "state.pt"
     if not sp.exists():
         return None, []
-    state = torch.load(sp, weights_only=False)
-    if state.get("key") != key:
-        return None, []
-    records = []
-    for t in range(state["next_frame"]):
-        fp = ckpt / f"frame_{t:05d}.pt"
-        if not fp.exists():
+    try:
+        state = torch.load(sp, weights_only=False)
+        if state.get("key") != key:
             return None, []
-        records.append(torch.load(fp, weights_only=False))
+        records = [
+            torch.load(ckpt / f"frame_{t:05d}.pt", weights_only=False)
+            for t in range(state["next_frame"])
+        ]
+    except (OSError, RuntimeError, EOFError, KeyError, AttributeError) as e:
+        # An unreadable checkpoint (e.g. from another version) means starting afresh.
+        print(f"fit: ignoring unreadable checkpoint {ckpt} ({e})")
+        return None, []
     return state, records
 
 
@@ -449,7 +452,7 @@ def _spawn_bubbles(
         vals = new.state()
         if model.use_sdf:
             # New surfels start at opacity 1/2 under the current γ.
-            vals["sdf"] = torch.full_like(vals["sdf"], HALF_OPACITY_GF / float(model.gamma))
+            vals["sdf"] = torch.full_like(vals["sdf"], HALF_OPACITY_GF / float(model.gamma.detach()))
         append_surfels(model, None, {k: v for k, v in vals.items() if v.dim() > 0})
         added.append(b)
     return added
@@ -517,7 +520,6 @@ def run_fit(
     params: Mapping | None = None,
     device: str = "auto",
     checkpoint_dir: str | os.PathLike | None = None,
-    stop_after: int | None = None,
 ) -> dict:
     """Fit one session; write ``out_dir`` (see :mod:`surfphase.fit.outputs`).
 
@@ -529,7 +531,6 @@ def run_fit(
         device: ``auto``, ``cpu`` or ``cuda``.
         checkpoint_dir: where per-frame checkpoints go (default ``<out_dir>.ckpt``);
             an existing checkpoint of the same inputs and parameters is resumed.
-        stop_after: finish after this many frames without writing outputs (tests).
 
     Returns:
         The summary dict (also written to ``out_dir/summary.json``).
@@ -645,8 +646,6 @@ def run_fit(
                 "background": background,
             },
         )
-        if stop_after is not None and t + 1 >= stop_after:
-            return {"stopped_after": t + 1}
 
     return outputs.write_outputs(
         out_dir, records, data, p, background, extent=model.extent, device=dev

@@ -92,9 +92,25 @@ def instance_table(labels: np.ndarray, scores: Sequence[np.ndarray], camera: str
             xs = xs + sl[1].start
             top, bot = ys.min(), ys.max()
             sc = scores[t][i] if len(scores[t]) > i else np.nan
-            rows.append((t, camera, i, ys.size, xs.mean(), ys.mean(), xs.min(), top, xs.max(),
-                         bot, float(sc), xs[ys == top].mean(), float(top),
-                         xs[ys == bot].mean(), float(bot)))
+            rows.append(
+                (
+                    t,
+                    camera,
+                    i,
+                    ys.size,
+                    xs.mean(),
+                    ys.mean(),
+                    xs.min(),
+                    top,
+                    xs.max(),
+                    bot,
+                    float(sc),
+                    xs[ys == top].mean(),
+                    float(top),
+                    xs[ys == bot].mean(),
+                    float(bot),
+                )
+            )
     return pd.DataFrame(rows, columns=INSTANCE_COLUMNS)
 
 
@@ -122,8 +138,9 @@ def symmetric_epipolar_distance(F: np.ndarray, xa: np.ndarray, xb: np.ndarray) -
     return 0.5 * (da + db)
 
 
-def pair_cost(inst_a: pd.DataFrame, inst_b: pd.DataFrame, cams: tuple[Camera, Camera] | None
-              ) -> np.ndarray:
+def pair_cost(
+    inst_a: pd.DataFrame, inst_b: pd.DataFrame, cams: tuple[Camera, Camera] | None
+) -> np.ndarray:
     """(N, M) cross-view cost in pixels between instances of one frame in views a and b."""
     feats = [("top_u", "top_v"), ("bot_u", "bot_v"), ("cx", "cy")]
     cost = np.zeros((len(inst_a), len(inst_b)))
@@ -131,15 +148,22 @@ def pair_cost(inst_a: pd.DataFrame, inst_b: pd.DataFrame, cams: tuple[Camera, Ca
         F = fundamental_matrix(*cams)
         for fu, fv in feats:
             cost += symmetric_epipolar_distance(
-                F, inst_a[[fu, fv]].to_numpy(float), inst_b[[fu, fv]].to_numpy(float))
+                F, inst_a[[fu, fv]].to_numpy(float), inst_b[[fu, fv]].to_numpy(float)
+            )
     else:
         for _, fv in feats:
             cost += np.abs(inst_a[fv].to_numpy(float)[:, None] - inst_b[fv].to_numpy(float)[None])
     return cost / len(feats)
 
 
-def pair_views(inst: pd.DataFrame, cam_a: str, cam_b: str, height: int,
-               cams: tuple[Camera, Camera] | None, params: Mapping) -> pd.DataFrame:
+def pair_views(
+    inst: pd.DataFrame,
+    cam_a: str,
+    cam_b: str,
+    height: int,
+    cams: tuple[Camera, Camera] | None,
+    params: Mapping,
+) -> pd.DataFrame:
     """Per frame, Hungarian pairs of instances of ``cam_a`` and ``cam_b``.
 
     Returns a table ``frame, local_a, local_b, cost`` (cost in pixels).
@@ -171,8 +195,13 @@ class Tracks:
         return self.n - 1
 
 
-def _shifted_overlap(prev: np.ndarray, prev_ids: Sequence[int], shifts: Sequence[np.ndarray],
-                     cur: np.ndarray, n_cur: int) -> np.ndarray:
+def _shifted_overlap(
+    prev: np.ndarray,
+    prev_ids: Sequence[int],
+    shifts: Sequence[np.ndarray],
+    cur: np.ndarray,
+    n_cur: int,
+) -> np.ndarray:
     """(P, n_cur) pixel counts of previous masks, shifted, falling on current instances."""
     h, w = cur.shape
     out = np.zeros((len(prev_ids), n_cur), np.int64)
@@ -187,8 +216,9 @@ def _shifted_overlap(prev: np.ndarray, prev_ids: Sequence[int], shifts: Sequence
     return out
 
 
-def track_view(labels: np.ndarray, inst: pd.DataFrame, attached: set[tuple[int, int]],
-               params: Mapping) -> Tracks:
+def track_view(
+    labels: np.ndarray, inst: pd.DataFrame, attached: set[tuple[int, int]], params: Mapping
+) -> Tracks:
     """Track the free (non-attached) instances of one view through time.
 
     Every track predicts its mask in the next frame by shifting its last mask by its
@@ -226,8 +256,11 @@ def track_view(labels: np.ndarray, inst: pd.DataFrame, attached: set[tuple[int, 
         free = [] if rows is None else [int(i) for i in rows.local if (t, int(i)) not in attached]
         n_cur = int(cur.max()) + 1
         cur_area = np.bincount(cur[cur >= 0].ravel(), minlength=max(n_cur, 1))
-        cent = {} if rows is None else {int(r.local): np.array([r.cx, r.cy])
-                                        for r in rows.itertuples()}
+        cent = (
+            {}
+            if rows is None
+            else {int(r.local): np.array([r.cx, r.cy]) for r in rows.itertuples()}
+        )
         cands = [k for k, v in last.items() if t - v[0] <= coast]
         assigned: dict[int, int] = {}
         ov = np.zeros((len(cands), len(free)), np.int64)
@@ -296,9 +329,14 @@ def track_view(labels: np.ndarray, inst: pd.DataFrame, attached: set[tuple[int, 
                     if oo == other and ff >= f:
                         hidden_by[kk] = (ff, merged)
                 tr.events = [
-                    (ef, kind, [merged if (q == other and ef >= f) else q for q in par],
-                     [merged if (q == other and ef >= f) else q for q in kids])
-                    for ef, kind, par, kids in tr.events]
+                    (
+                        ef,
+                        kind,
+                        [merged if (q == other and ef >= f) else q for q in par],
+                        [merged if (q == other and ef >= f) else q for q in kids],
+                    )
+                    for ef, kind, par, kids in tr.events
+                ]
                 tr.events.append((f, "merge", [k, other], [merged]))
         for loc, tid in assigned.items():
             tr.track_of[(t, loc)] = tid
@@ -318,11 +356,51 @@ def _touches(prev: np.ndarray, prev_locals: Sequence[int], mask: np.ndarray) -> 
     return bool(np.isin(prev[grown], list(prev_locals)).any())
 
 
-def _attached_pairs(inst: pd.DataFrame, pairs: pd.DataFrame, cam_a: str, cam_b: str,
-                    cams: tuple[Camera, Camera] | None, height: int, params: Mapping
-                    ) -> set[tuple[str, int, int]]:
-    """(camera, frame, local) of instances attached to the plate (nucleation region)."""
+def _on_plate(inst: pd.DataFrame, plates: Mapping[str, np.ndarray]) -> set[tuple[str, int, int]]:
+    """Instances whose lowest pixel rests on the plate's image (its static region)."""
     out: set[tuple[str, int, int]] = set()
+    for r in inst.itertuples():
+        plate = plates.get(r.camera)
+        if plate is None:
+            continue
+        v = min(int(r.bot_v) + 1, plate.shape[0] - 1)
+        u = min(max(int(round(r.bot_u)), 0), plate.shape[1] - 1)
+        if plate[v, u]:
+            out.add((r.camera, int(r.frame), int(r.local)))
+    return out
+
+
+def _attached_pairs(
+    inst: pd.DataFrame,
+    pairs: pd.DataFrame,
+    cam_a: str,
+    cam_b: str,
+    cams: tuple[Camera, Camera] | None,
+    height: int,
+    params: Mapping,
+    plates: Mapping[str, np.ndarray] | None = None,
+) -> set[tuple[str, int, int]]:
+    """(camera, frame, local) of instances attached to the plate (nucleation region).
+
+    Paired instances (with cameras): the silhouette bottoms triangulate to within
+    ``nucleation_height`` of y = 0. Unpaired ones (an attached bubble hidden or
+    fused in the other view), and all of them without cameras: the bottom rests on
+    the plate's image when ``plates`` gives it, else on the lowest silhouette bottom
+    of the session (within ``nucleation_margin_frac`` of the height).
+    """
+    out: set[tuple[str, int, int]] = set()
+    if plates:
+        paired = set()
+        if cams is not None:
+            paired = {
+                (cam_a, int(t), int(a)) for t, a in zip(pairs.frame, pairs.local_a, strict=True)
+            }
+            paired |= {
+                (cam_b, int(t), int(b)) for t, b in zip(pairs.frame, pairs.local_b, strict=True)
+            }
+        out |= _on_plate(inst, plates) - paired
+        if cams is None:
+            return out
     ia = inst[inst.camera == cam_a].set_index(["frame", "local"])
     ib = inst[inst.camera == cam_b].set_index(["frame", "local"])
     if cams is not None:
@@ -332,8 +410,9 @@ def _attached_pairs(inst: pd.DataFrame, pairs: pd.DataFrame, cam_a: str, cam_b: 
         ub = ib.loc[list(zip(pairs.frame, pairs.local_b, strict=True)), ["bot_u", "bot_v"]]
         X = triangulate(list(cams), [ua.to_numpy(float), ub.to_numpy(float)])
         low = X[:, 1] < params["nucleation_height"]
-        for (t, la, lb), lw in zip(pairs[["frame", "local_a", "local_b"]].itertuples(index=False),
-                                   low, strict=True):
+        for (t, la, lb), lw in zip(
+            pairs[["frame", "local_a", "local_b"]].itertuples(index=False), low, strict=True
+        ):
             if lw:
                 out.add((cam_a, int(t), int(la)))
                 out.add((cam_b, int(t), int(lb)))
@@ -355,6 +434,7 @@ def associate(
     scores: Mapping[str, Sequence[np.ndarray]],
     cameras: Mapping[str, Camera] | None,
     params: Mapping | None = None,
+    plates: Mapping[str, np.ndarray] | None = None,
 ) -> tuple[dict[str, np.ndarray], pd.DataFrame, pd.DataFrame]:
     """Give every instance a bubble id, consistent across views and time.
 
@@ -365,6 +445,9 @@ def associate(
         scores: ``{camera: [ (n_t,) confidence per frame ]}``.
         cameras: undistorted cameras of those frames (same pixel grid), or ``None``.
         params: overrides of :data:`ASSOCIATE_DEFAULTS`.
+        plates: optional ``{camera: (H, W) bool}`` image of the heated plate (the
+            static structure of :func:`surfphase.masks.classical.static_background`),
+            used for instances that cannot be triangulated.
 
     Returns:
         bubble_labels: ``{camera: (T, H, W) int32}``, −1 background, 0 nucleation
@@ -378,8 +461,7 @@ def associate(
     if not names:
         raise ValueError("no camera to associate")
     height = next(iter(labels.values())).shape[1]
-    inst = pd.concat([instance_table(labels[c], scores[c], c) for c in names],
-                     ignore_index=True)
+    inst = pd.concat([instance_table(labels[c], scores[c], c) for c in names], ignore_index=True)
     attached: set[tuple[str, int, int]] = set()
     pairs = pd.DataFrame(columns=["frame", "local_a", "local_b", "cost"])
     cam_pair = None
@@ -388,7 +470,7 @@ def associate(
         if cameras is not None and a in cameras and b in cameras:
             cam_pair = (cameras[a], cameras[b])
         pairs = pair_views(inst, a, b, height, cam_pair, p)
-        attached = _attached_pairs(inst, pairs, a, b, cam_pair, height, p)
+        attached = _attached_pairs(inst, pairs, a, b, cam_pair, height, p, plates)
     tracks = {}
     for c in names:
         att = {(t, loc) for (cc, t, loc) in attached if cc == c}
@@ -457,9 +539,11 @@ def associate(
             out[t][lab[t] == loc] = bid
         out_labels[c] = out
     inst = inst.assign(bubble=bubble_col)
-    instances = inst[["frame", "camera", "bubble", "area", "cx", "cy", "x0", "y0", "x1", "y1",
-                      "score"]].sort_values(["frame", "camera", "bubble"], kind="stable")
+    instances = inst[
+        ["frame", "camera", "bubble", "area", "cx", "cy", "x0", "y0", "x1", "y1", "score"]
+    ].sort_values(["frame", "camera", "bubble"], kind="stable")
     ev_rows = []
+
     def bubble_id(c: str, q: int) -> int:
         return 0 if q < 0 else bubble_of_group.get(find((c, q)), -1) if (c, q) in parent else -1
 

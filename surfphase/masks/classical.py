@@ -35,8 +35,10 @@ CLASSICAL_DEFAULTS: dict = {
     "polarity": "dark",
     # Total degree of the robust polynomial background fit.
     "background_degree": 4,
-    # Session reference: this per-pixel percentile over (at most max) frames.
+    # Session reference: this per-pixel percentile over (at most max) frames; on the
+    # plate, the plate percentile.
     "reference_percentile": 90.0,
+    "plate_percentile": 50.0,
     "reference_max_frames": 64,
     # Static dark structure (the heated plate): darker than the fitted background by
     # this fraction in the reference, touching the border, at least this area fraction.
@@ -105,15 +107,19 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
     """
     h, w = image.shape
     f = min(1.0, 64.0 / max(h, w))
-    small = cv2.resize(image.astype(np.float32), (max(2, round(w * f)), max(2, round(h * f))),
-                       interpolation=cv2.INTER_AREA)
+    small = cv2.resize(
+        image.astype(np.float32),
+        (max(2, round(w * f)), max(2, round(h * f))),
+        interpolation=cv2.INTER_AREA,
+    )
     sh, sw = small.shape
     ys, xs = np.mgrid[0:sh, 0:sw]
     A = _poly_design((xs.ravel() + 0.5) / sw * 2 - 1, (ys.ravel() + 0.5) / sh * 2 - 1, degree)
     b = small.ravel().astype(np.float64)
     k = max(3, int(0.3 * min(sh, sw)) | 1)
-    closed = cv2.morphologyEx(small, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8),
-                              borderType=cv2.BORDER_REPLICATE)
+    closed = cv2.morphologyEx(
+        small, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE
+    )
     # Large dark structures (the plate, dark to the border) fail the second test.
     local = (small >= 0.8 * closed).ravel() & (b > 0.6 * np.percentile(b, 95))
     keep = local.copy()
@@ -142,8 +148,9 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
     return bg.astype(np.float32)
 
 
-def session_reference(frames: np.ndarray, percentile: float = 90.0, max_frames: int = 64
-                      ) -> np.ndarray:
+def session_reference(
+    frames: np.ndarray, percentile: float = 90.0, max_frames: int = 64
+) -> np.ndarray:
     """(H, W) float32 reference image of a (T, H, W) frame stack: what stays put.
 
     The per-pixel ``percentile`` over at most ``max_frames`` evenly spaced frames:
@@ -158,9 +165,16 @@ def session_reference(frames: np.ndarray, percentile: float = 90.0, max_frames: 
     return np.percentile(stack, percentile, axis=0).astype(np.float32)
 
 
-def static_background(reference: np.ndarray, params: Mapping | None = None
-                      ) -> tuple[np.ndarray, np.ndarray]:
+def static_background(
+    reference: np.ndarray,
+    params: Mapping | None = None,
+    plate_reference: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Background model of a session from its :func:`session_reference`.
+
+    ``plate_reference`` (default: ``reference``) supplies the values on the plate: a
+    per-pixel *median* there is not lifted by the bright cores of bubbles that sit
+    at a nucleation site in a good part of the frames.
 
     The backlight is the robust polynomial fit of the reference. A static dark
     structure entering from the bottom of the view — the heated plate — is the part
@@ -211,7 +225,8 @@ def static_background(reference: np.ndarray, params: Mapping | None = None
     vv = edge[None, :] + np.arange(depth)[:, None]
     valid = vv < h
     uu = np.broadcast_to(np.arange(w)[None, :], vv.shape)
-    band = np.where(valid, ref[np.minimum(vv, h - 1), uu], np.nan)
+    pref = ref if plate_reference is None else _polarised(plate_reference, p)
+    band = np.where(valid, pref[np.minimum(vv, h - 1), uu], np.nan)
     padded = np.pad(band, ((0, 0), (win // 2, win // 2)), constant_values=np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(padded, win, axis=1)
     with warnings.catch_warnings():
@@ -234,6 +249,17 @@ def static_background(reference: np.ndarray, params: Mapping | None = None
     return bg.astype(np.float32), static
 
 
+def session_background(
+    frames: np.ndarray, params: Mapping | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(background, static)`` of a (T, H, W) session: :func:`static_background` of
+    its reference (``reference_percentile``), plate values from ``plate_percentile``."""
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    ref = session_reference(frames, p["reference_percentile"], p["reference_max_frames"])
+    plate = session_reference(frames, p["plate_percentile"], p["reference_max_frames"])
+    return static_background(ref, p, plate)
+
+
 def _polarised(image: np.ndarray, p: Mapping) -> np.ndarray:
     img = to_unit_float(image)
     if p["polarity"] == "bright":
@@ -243,8 +269,11 @@ def _polarised(image: np.ndarray, p: Mapping) -> np.ndarray:
     return img
 
 
-def relative_contrast(image: np.ndarray, params: Mapping | None = None,
-                      background: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def relative_contrast(
+    image: np.ndarray,
+    params: Mapping | None = None,
+    background: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """(H, W) float32 relative darkness ``(background − image) / background`` in [0, 1].
 
     ``background`` is ``(background, static)`` from :func:`static_background`; without
@@ -272,8 +301,12 @@ def relative_contrast(image: np.ndarray, params: Mapping | None = None,
     return np.clip(c, 0.0, 1.0).astype(np.float32)
 
 
-def foreground_mask(contrast: np.ndarray, params: Mapping | None = None,
-                    static: np.ndarray | None = None, return_cores: bool = False):
+def foreground_mask(
+    contrast: np.ndarray,
+    params: Mapping | None = None,
+    static: np.ndarray | None = None,
+    return_cores: bool = False,
+):
     """(H, W) bool bubble pixels from the relative contrast.
 
     Objects are *detected* by hysteresis on the smoothed contrast; each object's
@@ -334,8 +367,9 @@ def _neck_widths(labels: np.ndarray, dist: np.ndarray) -> dict[tuple[int, int], 
     return necks
 
 
-def split_touching(fg: np.ndarray, params: Mapping | None = None,
-                   cores: np.ndarray | None = None) -> np.ndarray:
+def split_touching(
+    fg: np.ndarray, params: Mapping | None = None, cores: np.ndarray | None = None
+) -> np.ndarray:
     """Split touching bubbles of a (H, W) bool mask → (H, W) int32 labels 1..n, 0 outside.
 
     Watershed of the negated Euclidean distance transform from its local maxima;
@@ -386,8 +420,9 @@ def split_touching(fg: np.ndarray, params: Mapping | None = None,
         core_lab, n_core = ndi.label(cores & fg)
         sizes = ndi.sum_labels(np.ones_like(core_lab), core_lab, np.arange(1, n_core + 1))
         core_lab[np.isin(core_lab, np.flatnonzero(sizes < 2) + 1)] = 0
-        per_comp = ndi.labeled_comprehension(core_lab, comp, np.arange(1, n + 1),
-                                             lambda v: len(np.unique(v[v > 0])), int, 0)
+        per_comp = ndi.labeled_comprehension(
+            core_lab, comp, np.arange(1, n + 1), lambda v: len(np.unique(v[v > 0])), int, 0
+        )
         nxt = int(out.max()) + 1
         for k in np.flatnonzero(per_comp >= 2) + 1:
             m = comp == k
@@ -419,8 +454,9 @@ def segment_frame(
     """
     p = {**CLASSICAL_DEFAULTS, **(params or {})}
     contrast = relative_contrast(image, p, background)
-    fg, cores = foreground_mask(contrast, p, None if background is None else background[1],
-                                return_cores=True)
+    fg, cores = foreground_mask(
+        contrast, p, None if background is None else background[1], return_cores=True
+    )
     if background is not None:
         # In front of the plate a bubble's core is not a clean hole in its ring.
         cores &= ~background[1]

@@ -38,8 +38,9 @@ def _overlaps(gt: np.ndarray, pred: np.ndarray):
     return g_ids, p_ids, inter
 
 
-def match_frame(gt: np.ndarray, pred: np.ndarray, match_iou: float = 0.25,
-                min_area: int = 6) -> list[tuple[tuple[int, ...], int, float]]:
+def match_frame(
+    gt: np.ndarray, pred: np.ndarray, match_iou: float = 0.25, min_area: int = 6
+) -> list[tuple[tuple[int, ...], int, float]]:
     """Match the truth bubbles of one frame and view to predicted ids.
 
     Args:
@@ -74,13 +75,18 @@ def match_frame(gt: np.ndarray, pred: np.ndarray, match_iou: float = 0.25,
     out = []
     for r, c in zip(rr, cc, strict=True):
         if iou[r, c] >= match_iou:
-            out.append((tuple(int(g_ids[i]) for i in groups[r]), int(p_ids[pi[c]]),
-                        float(iou[r, c])))
+            out.append(
+                (tuple(int(g_ids[i]) for i in groups[r]), int(p_ids[pi[c]]), float(iou[r, c]))
+            )
     return out
 
 
-def mask_metrics(gt: Mapping[str, np.ndarray], pred: Mapping[str, np.ndarray],
-                 match_iou: float = 0.25, min_area: int = 6) -> dict:
+def mask_metrics(
+    gt: Mapping[str, np.ndarray],
+    pred: Mapping[str, np.ndarray],
+    match_iou: float = 0.25,
+    min_area: int = 6,
+) -> dict:
     """The three figures (and their counts) over all frames of all views.
 
     Args:
@@ -103,8 +109,9 @@ def mask_metrics(gt: Mapping[str, np.ndarray], pred: Mapping[str, np.ndarray],
             raise ValueError(f"{c}: truth {g_st.shape} and prediction {p_st.shape} differ")
         for t in range(g_st.shape[0]):
             g_ids, _, inter = _overlaps(g_st[t], p_st[t])
-            n_truth += int(sum(1 for i, g in enumerate(g_ids)
-                               if g >= 0 and inter[i].sum() >= min_area))
+            n_truth += int(
+                sum(1 for i, g in enumerate(g_ids) if g >= 0 and inter[i].sum() >= min_area)
+            )
             m = match_frame(g_st[t], p_st[t], match_iou, min_area)
             n_pred = len(np.unique(p_st[t][p_st[t] >= 0]))
             n_fp += n_pred - len(m)
@@ -141,14 +148,14 @@ def mask_metrics(gt: Mapping[str, np.ndarray], pred: Mapping[str, np.ndarray],
         "temporal_identity_mean": float(np.mean(fracs)) if fracs else float("nan"),
         "temporal_identity_min": float(np.min(fracs)) if fracs else float("nan"),
         "temporal_identity_frames": frames_kept / frames_all if frames_all else float("nan"),
-        "temporal_identity_ok_frac": float(np.mean([f >= 0.95 for f in fracs])) if fracs
+        "temporal_identity_ok_frac": float(np.mean([f >= 0.95 for f in fracs]))
+        if fracs
         else float("nan"),
         "tracked_bubbles": len(fracs),
     }
 
 
-def warp_labels(labels: np.ndarray, src: Camera, dst: Camera, supersample: int = 4
-                ) -> np.ndarray:
+def warp_labels(labels: np.ndarray, src: Camera, dst: Camera, supersample: int = 4) -> np.ndarray:
     """Resample label stacks seen by camera ``src`` onto the pixel grid of ``dst``.
 
     Both cameras must share their centre (same pose, e.g. a raw distorted camera and
@@ -167,7 +174,7 @@ def warp_labels(labels: np.ndarray, src: Camera, dst: Camera, supersample: int =
         raise ValueError(f"cameras {src.name} and {dst.name} do not share their centre")
     s = int(supersample)
     off = (np.arange(s) + 0.5) / s - 0.5
-    v, u = np.mgrid[0:dst.height, 0:dst.width].astype(np.float64)
+    v, u = np.mgrid[0 : dst.height, 0 : dst.width].astype(np.float64)
     shape = (dst.height, dst.width, s, s)
     uu = np.broadcast_to(u[..., None, None] + off[None, None, None, :], shape).ravel()
     vv = np.broadcast_to(v[..., None, None] + off[None, None, :, None], shape).ravel()

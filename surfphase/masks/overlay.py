@@ -23,8 +23,9 @@ def bubble_colour(bubble: int) -> tuple[int, int, int]:
     return int(r), int(g), int(b)
 
 
-def overlay_frame(image: np.ndarray, labels: np.ndarray, alpha: float = 0.35,
-                  min_size: int = 256) -> np.ndarray:
+def overlay_frame(
+    image: np.ndarray, labels: np.ndarray, alpha: float = 0.35, min_size: int = 256
+) -> np.ndarray:
     """Colour each bubble of a frame, outline it and write its id.
 
     Args:
@@ -52,8 +53,16 @@ def overlay_frame(image: np.ndarray, labels: np.ndarray, alpha: float = 0.35,
         col = bubble_colour(int(b))
         cv2.drawContours(out, contours, -1, col, 1)
         ys, xs = np.nonzero(m)
-        cv2.putText(out, str(int(b)), (int(xs.mean()) - 4, int(ys.mean()) + 4),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            out,
+            str(int(b)),
+            (int(xs.mean()) - 4, int(ys.mean()) + 4),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.4,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
     return out
 
 

@@ -149,8 +149,10 @@ class SamOnnx:
         dec_in = {i.name: i for i in self.decoder.get_inputs()}
         missing = [n for n in DECODER_INPUTS if n not in dec_in]
         dec_out = [o.name for o in self.decoder.get_outputs()]
-        if missing or "iou_predictions" not in dec_out or not (
-            "low_res_masks" in dec_out or "masks" in dec_out
+        if (
+            missing
+            or "iou_predictions" not in dec_out
+            or not ("low_res_masks" in dec_out or "masks" in dec_out)
         ):
             raise ValueError(
                 f"{self.decoder_path}: not a SAM prompt decoder (inputs {sorted(dec_in)}, "
@@ -175,7 +177,11 @@ class SamOnnx:
         side is 1024; for rank-4 encoders also normalised, made CHW and padded.
         """
         img = np.asarray(image)
-        if img.ndim not in (2, 3) or min(img.shape[:2]) < 1 or (img.ndim == 3 and img.shape[2] != 3):
+        if (
+            img.ndim not in (2, 3)
+            or min(img.shape[:2]) < 1
+            or (img.ndim == 3 and img.shape[2] != 3)
+        ):
             raise ValueError(f"expected a (H, W) or (H, W, 3) image, got shape {img.shape}")
         if img.ndim == 2:
             rgb = np.repeat(to_unit_float(img)[:, :, None], 3, axis=2)
@@ -207,7 +213,9 @@ class SamOnnx:
         try:
             (emb,) = self.encoder.run([self.encoder_output], {self.encoder_input: x})
         except Exception as e:
-            raise ValueError(f"{self.encoder_path}: the encoder failed on a {x.shape} input: {e}") from e
+            raise ValueError(
+                f"{self.encoder_path}: the encoder failed on a {x.shape} input: {e}"
+            ) from e
         want = self.embedding_shape
         if emb.ndim != 4 or any(
             d is not None and d != g for d, g in zip(want[1:], emb.shape[1:], strict=True)
@@ -220,8 +228,13 @@ class SamOnnx:
 
     # -- decoder -------------------------------------------------------------
 
-    def _decode(self, embedding: np.ndarray, coords: np.ndarray, labels: np.ndarray,
-                orig_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    def _decode(
+        self,
+        embedding: np.ndarray,
+        coords: np.ndarray,
+        labels: np.ndarray,
+        orig_hw: tuple[int, int],
+    ) -> tuple[np.ndarray, np.ndarray]:
         b = coords.shape[0]
         feeds = {
             "image_embeddings": embedding,
@@ -231,8 +244,10 @@ class SamOnnx:
             "has_mask_input": np.zeros(b, np.float32),
             "orig_im_size": np.asarray(orig_hw, np.float32),
         }
-        names = ["low_res_masks" if "low_res_masks" in self.decoder_outputs else "masks",
-                 "iou_predictions"]
+        names = [
+            "low_res_masks" if "low_res_masks" in self.decoder_outputs else "masks",
+            "iou_predictions",
+        ]
         try:
             masks, iou = self.decoder.run(names, feeds)
         except Exception as e:
@@ -251,10 +266,18 @@ class SamOnnx:
         h2, w2 = resized_shape(h, w)
         mr = resample_matrix(low_res.shape[-2], h2, h)
         mc = resample_matrix(low_res.shape[-1], w2, w)
-        return np.matmul(np.matmul(mr, low_res.astype(np.float32)), mc.T)
+        b, k, hl, wl = low_res.shape
+        # Two plain 2-D products (BLAS), columns first, then rows.
+        cols = np.ascontiguousarray(low_res, np.float32).reshape(-1, wl) @ mc.T  # (BKhl, W)
+        cols = cols.reshape(b * k, hl, w).transpose(1, 0, 2).reshape(hl, -1)
+        out = (mr @ cols).reshape(h, b * k, w).transpose(1, 0, 2)
+        return np.ascontiguousarray(out.reshape(b, k, h, w))
 
     def predict_points(
-        self, embedding: np.ndarray, points: np.ndarray, orig_hw: tuple[int, int],
+        self,
+        embedding: np.ndarray,
+        points: np.ndarray,
+        orig_hw: tuple[int, int],
         batch: int = 64,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Decode one foreground point prompt per row of ``points``.
@@ -278,7 +301,7 @@ class SamOnnx:
         step = max(1, int(batch)) if self.dynamic_batch else 1
         outs, ious = [], []
         for i in range(0, pts.shape[0], step):
-            m, q = self._decode(embedding, coords[i:i + step], labels[i:i + step], (h, w))
+            m, q = self._decode(embedding, coords[i : i + step], labels[i : i + step], (h, w))
             if m.shape[-2:] != (h, w):
                 m = self.upscale_low_res(m, (h, w))
             outs.append(m)
@@ -289,8 +312,9 @@ class SamOnnx:
 
     # -- automatic mask generation ------------------------------------------------
 
-    def generate(self, image: np.ndarray, params: Mapping | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
+    def generate(
+        self, image: np.ndarray, params: Mapping | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Automatic masks of one frame → ((H, W) int32 labels, −1 background; (n,) scores).
 
         The encoder runs once; a ``points_per_side``² grid of prompts is decoded in
@@ -305,13 +329,15 @@ class SamOnnx:
         masks, scores = [], []
         nb = max(1, int(p["points_per_batch"]))
         for i in range(0, grid.shape[0], nb):
-            logits, iou = self.predict_points(emb, grid[i:i + nb], (h, w), batch=nb)
+            logits, iou = self.predict_points(emb, grid[i : i + nb], (h, w), batch=nb)
             if logits.shape[1] > 1:
                 # Multimask tokens 1..3, as SAM's automatic generator uses.
                 logits, iou = logits[:, 1:], iou[:, 1:]
             m, s = amg.filter_candidates(
-                logits.reshape(-1, h, w), iou.reshape(-1),
-                float(p["pred_iou_thresh"]), float(p["stability_score_thresh"]),
+                logits.reshape(-1, h, w),
+                iou.reshape(-1),
+                float(p["pred_iou_thresh"]),
+                float(p["stability_score_thresh"]),
                 stability_offset=float(p["stability_score_offset"]),
             )
             masks.append(m)

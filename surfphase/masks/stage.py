@@ -104,7 +104,9 @@ def read_ingest(ingest_dir: Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
     for name in names:
         path = ingest_dir / f"{name}.npy"
         if not path.is_file():
-            raise FileNotFoundError(f"{path}: frame stack of camera {name} (session {session}) not found")
+            raise FileNotFoundError(
+                f"{path}: frame stack of camera {name} (session {session}) not found"
+            )
         try:
             st = load_stack(path)
         except ValueError as e:
@@ -112,7 +114,9 @@ def read_ingest(ingest_dir: Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
         if st.ndim == 4 and st.shape[-1] in (1, 3):
             pass
         elif st.ndim != 3:
-            raise ValueError(f"{path}: expected frames × H × W, got shape {st.shape} (session {session})")
+            raise ValueError(
+                f"{path}: expected frames × H × W, got shape {st.shape} (session {session})"
+            )
         if name not in cameras:
             raise ValueError(f"{cam_path}: no camera {name!r} (session {session})")
         cam = cameras[name]
@@ -122,8 +126,9 @@ def read_ingest(ingest_dir: Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
                 f"{name} is {cam.width}×{cam.height} (session {session})"
             )
         if n_frames is not None and st.shape[0] != n_frames:
-            raise ValueError(f"{path}: {st.shape[0]} frames, other cameras have {n_frames} "
-                             f"(session {session})")
+            raise ValueError(
+                f"{path}: {st.shape[0]} frames, other cameras have {n_frames} (session {session})"
+            )
         n_frames = st.shape[0]
         if not (np.issubdtype(st.dtype, np.integer) or np.issubdtype(st.dtype, np.floating)):
             raise ValueError(f"{path}: unsupported dtype {st.dtype} (session {session})")
@@ -131,16 +136,20 @@ def read_ingest(ingest_dir: Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
     return meta, cameras, stacks
 
 
-def segment_stack(stack: np.ndarray, params: Mapping, backend=None) -> tuple[np.ndarray, list]:
-    """Segment every frame of a (T, H, W) stack → ((T, H, W) int32 labels, [scores])."""
+def segment_stack(
+    stack: np.ndarray, params: Mapping, backend=None
+) -> tuple[np.ndarray, list, np.ndarray]:
+    """Segment every frame of a (T, H, W) stack.
+
+    Returns (T, H, W) int32 labels, per-frame scores, and the (H, W) bool image of
+    the heated plate (static dark structure) found in the session's reference.
+    """
     t_n, h, w = stack.shape[:3]
     labels = np.full((t_n, h, w), -1, np.int32)
     scores = []
+    cp = params["classical"]
+    bg = classical.session_background(stack, cp)
     if params["backend"] == "classical":
-        cp = params["classical"]
-        ref = classical.session_reference(stack, cp["reference_percentile"],
-                                          cp["reference_max_frames"])
-        bg = classical.static_background(ref, cp)
         for t in range(t_n):
             labels[t], s = classical.segment_frame(stack[t], cp, bg)
             scores.append(s)
@@ -148,7 +157,7 @@ def segment_stack(stack: np.ndarray, params: Mapping, backend=None) -> tuple[np.
         for t in range(t_n):
             labels[t], s = backend.generate(classical.to_unit_float(stack[t]), params["sam"])
             scores.append(s)
-    return labels, scores
+    return labels, scores, bg[1]
 
 
 def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = None) -> None:
@@ -164,11 +173,11 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
     meta, cameras, stacks = read_ingest(ingest_dir)
     backend = load_sam(p["sam"]) if p["backend"] == "sam" else None
     t0 = time.perf_counter()
-    labels, scores = {}, {}
+    labels, scores, plates = {}, {}, {}
     for name, st in stacks.items():
-        labels[name], scores[name] = segment_stack(st, p, backend)
+        labels[name], scores[name], plates[name] = segment_stack(st, p, backend)
     t_seg = time.perf_counter() - t0
-    bubble_labels, instances, events = associate(labels, scores, cameras, p["associate"])
+    bubble_labels, instances, events = associate(labels, scores, cameras, p["associate"], plates)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
@@ -179,22 +188,27 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
         n_frames = next(iter(stacks.values())).shape[0]
         k = max(0, min(int(p["overlay_frames"]), n_frames))
         for t in np.unique(np.linspace(0, n_frames - 1, k).round().astype(int)) if k else []:
-            pics = [overlay_frame(classical.to_unit_float(stacks[c][t]), bubble_labels[c][t])
-                    for c in stacks]
+            pics = [
+                overlay_frame(classical.to_unit_float(stacks[c][t]), bubble_labels[c][t])
+                for c in stacks
+            ]
             hmax = max(pc.shape[0] for pc in pics)
             pics = [np.pad(pc, ((0, hmax - pc.shape[0]), (0, 4), (0, 0))) for pc in pics]
             save_png(tmp / "overlays" / f"frame_{int(t):05d}.png", np.concatenate(pics, axis=1))
-        atomic_write_json(tmp / "masks.json", {
-            "session": meta.get("session", ingest_dir.name),
-            "backend": p["backend"],
-            "params": p,
-            "cameras": list(stacks),
-            "frames": n_frames,
-            "instances": len(instances),
-            "bubbles": int(instances.loc[instances.bubble > 0, "bubble"].nunique()),
-            "events": len(events),
-            "segment_seconds": round(t_seg, 3),
-        })
+        atomic_write_json(
+            tmp / "masks.json",
+            {
+                "session": meta.get("session", ingest_dir.name),
+                "backend": p["backend"],
+                "params": p,
+                "cameras": list(stacks),
+                "frames": n_frames,
+                "instances": len(instances),
+                "bubbles": int(instances.loc[instances.bubble > 0, "bubble"].nunique()),
+                "events": len(events),
+                "segment_seconds": round(t_seg, 3),
+            },
+        )
         out_dir.mkdir(parents=True, exist_ok=True)
         if (out_dir / "overlays").exists():
             shutil.rmtree(out_dir / "overlays")

@@ -33,8 +33,12 @@ def draw_view(cam, spheres, seed: int, noise: float = 0.01, core: bool = True):
     """
     h, w = cam.height, cam.width
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    bg = 0.8 + 0.08 * (xx / w) - 0.06 * (yy / h) - 0.12 * (((xx - w / 2) ** 2 + (yy - h / 2) ** 2)
-                                                     / (w * w / 4 + h * h / 4))
+    bg = (
+        0.8
+        + 0.08 * (xx / w)
+        - 0.06 * (yy / h)
+        - 0.12 * (((xx - w / 2) ** 2 + (yy - h / 2) ** 2) / (w * w / 4 + h * h / 4))
+    )
     img = bg.copy()
     truth = np.full((h, w), -1, np.int32)
     depth = [cam.world_to_camera(c[None])[0, 2] for c, _ in spheres]
@@ -43,7 +47,7 @@ def draw_view(cam, spheres, seed: int, noise: float = 0.01, core: bool = True):
     oy, ox = np.meshgrid(off, off, indexing="ij")
     for k in np.argsort(depth)[::-1]:
         c, r = spheres[k]
-        (u, v), = cam.project(c[None], distort=False)
+        ((u, v),) = cam.project(c[None], distort=False)
         rp = cam.K[0, 0] * r / depth[k]
         d = np.sqrt((xx[..., None, None] + ox - u) ** 2 + (yy[..., None, None] + oy - v) ** 2)
         rho = d / rp
@@ -56,8 +60,15 @@ def draw_view(cam, spheres, seed: int, noise: float = 0.01, core: bool = True):
     return np.clip(img, 0, 1).astype(np.float32), truth
 
 
-def write_ingest(folder: Path, tracks, n_frames: int, size: int = 128, dtype=np.float32,
-                 session: str = "s01", core: bool = True):
+def write_ingest(
+    folder: Path,
+    tracks,
+    n_frames: int,
+    size: int = 128,
+    dtype=np.float32,
+    session: str = "s01",
+    core: bool = True,
+):
     """tracks: list of functions frame → (centre, radius) or None. Writes an ingest folder.
 
     Returns ``{camera: (T, H, W) truth}`` (sphere index per pixel, −1 background).
@@ -80,9 +91,16 @@ def write_ingest(folder: Path, tracks, n_frames: int, size: int = 128, dtype=np.
         np.save(folder / f"{name}.npy", st)
         truths[name] = np.stack(tr)
     save_cameras(folder / "cameras.json", cams)
-    (folder / "meta.json").write_text(json.dumps(
-        {"session": session, "fps": 2000.0, "frames": list(range(n_frames)),
-         "cameras": list(cams)}))
+    (folder / "meta.json").write_text(
+        json.dumps(
+            {
+                "session": session,
+                "fps": 2000.0,
+                "frames": list(range(n_frames)),
+                "cameras": list(cams),
+            }
+        )
+    )
     return truths
 
 

@@ -1,0 +1,333 @@
+"""The ``evaluate`` stage of one session: metrics JSON, baseline and velocity tables.
+
+Inputs (folders of earlier stages):
+
+* ``INGEST`` — ``cameras.json`` (undistorted cameras), ``meta.json`` (``session``,
+  ``fps``, ``frame_indices``), ``<cam>.npy`` frame stacks;
+* ``MASKS`` — ``<cam>_labels.npy`` (int32 T × H × W, −1 background, ids shared across
+  views and time, 0 the nucleation region);
+* ``FIT`` — ``bubbles.csv`` (``frame, time_s, bubble, x, y, z, vx, vy, vz``; m, m/s, lab
+  frame) and, for held-out views, ``surfels.npz`` (:mod:`surfphase.fit.outputs`);
+* ``GT`` (synthetic sessions only) — ``cameras.json``, ``bubbles.csv``,
+  ``views/<cam>/<frame:06d>.png``, ``meshes/<frame:06d>.ply``;
+* ``MESHES`` (optional, from the mesh stage) — ``<frame:06d>.ply``, metres.
+
+Outputs in ``OUT`` (each written whole or not at all):
+
+* ``metrics.json`` — ``session``; ``heldout`` (per held-out camera and ``mean``: ``l1``,
+  ``psnr`` dB, ``ssim``, ``frames``); ``velocity`` (``method`` and ``baseline``:
+  ``mean_abs_error_mps``, ``relative_error``, ``mean_speed_gt_mps``, ``matched``);
+  ``chamfer_mm`` (with method meshes); ``reference2d`` (always: the 2D reference's
+  relative x/y errors of ``method`` and ``baseline``); non-finite numbers are ``null``;
+* ``baseline_bubbles.csv`` — the two-view centroid baseline (:mod:`.baseline`);
+* ``velocity_table.csv`` — one row per compared bubble-frame, column ``source``
+  (``method``/``baseline``): with ground truth the matches of
+  :func:`surfphase.eval.velocity.match_bubbles`, without it the rows of
+  :func:`surfphase.eval.reference2d.compare_to_reference`.
+
+Bubble 0 (the nucleation region at the plate) is not a bubble of the ground truth and is
+left out of the velocity comparisons unless ``include_nucleation``. The baseline is
+compared on the frames present in the fit's ``bubbles.csv`` only, so that method and
+baseline errors average over the same frames.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from surfphase.cameras import Camera, load_cameras
+from surfphase.eval import baseline as bl
+from surfphase.eval import geometry, image_metrics, reference2d, velocity
+from surfphase.io import atomic_write_json, atomic_write_text
+
+METRIC_KEYS = ("l1", "psnr", "ssim")
+
+
+# -- inputs ------------------------------------------------------------------------------
+def read_session(ingest_dir: Path, masks_dir: Path) -> dict:
+    """Session name, fps, frame indices, and the undistorted cameras with label stacks."""
+    cam_path, meta_path = ingest_dir / "cameras.json", ingest_dir / "meta.json"
+    for p in (cam_path, meta_path):
+        if not p.exists():
+            raise FileNotFoundError(f"{p}: not found in the ingest folder")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except ValueError as e:
+        raise ValueError(f"{meta_path}: not valid JSON ({e})") from e
+    session = str(meta.get("session", ingest_dir.name))
+    fps = float(meta.get("fps") or 0)
+    if not fps > 0:
+        raise ValueError(f"{meta_path}: session {session}: fps must be positive")
+    cameras, labels = [], []
+    for name, cam in load_cameras(cam_path).items():
+        if not (ingest_dir / f"{name}.npy").exists():
+            continue
+        lab_path = masks_dir / f"{name}_labels.npy"
+        if not lab_path.exists():
+            raise FileNotFoundError(f"{lab_path}: session {session}: no masks for {name}")
+        lab = np.load(lab_path, mmap_mode="r")
+        if lab.ndim != 3 or lab.shape[1:] != (cam.height, cam.width):
+            raise ValueError(
+                f"{lab_path}: session {session}: labels of shape {lab.shape} do not match "
+                f"the {cam.width}×{cam.height} camera {name}"
+            )
+        cameras.append(cam.undistorted())
+        labels.append(lab)
+    if len(cameras) < 2:
+        raise ValueError(f"{ingest_dir}: session {session}: need ≥ 2 cameras with frames and masks")
+    T = min(lab.shape[0] for lab in labels)
+    idx = meta.get("frame_indices") or meta.get("frames")
+    if isinstance(idx, list) and len(idx) >= T:
+        frames = np.asarray(idx[:T], dtype=np.int64)
+    else:
+        frames = np.arange(T, dtype=np.int64)
+    return {
+        "session": session,
+        "fps": fps,
+        "frames": frames,
+        "cameras": cameras,
+        "labels": [lab[:T] for lab in labels],
+    }
+
+
+def read_table(path: Path, columns: Sequence[str], session: str) -> pd.DataFrame:
+    """A CSV with at least ``columns``; clear errors naming file and session."""
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: session {session}: not found")
+    try:
+        df = pd.read_csv(path)
+    except (ValueError, pd.errors.ParserError) as e:
+        raise ValueError(f"{path}: session {session}: not a readable CSV ({e})") from e
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise ValueError(f"{path}: session {session}: missing columns {missing}")
+    return df
+
+
+def read_view(path: Path) -> np.ndarray:
+    """An 8- or 16-bit PNG → (H, W) or (H, W, 3) RGB float64 in [0, 1]."""
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: not a readable image")
+    scale = 65535.0 if img.dtype == np.uint16 else 255.0
+    img = img.astype(np.float64) / scale
+    if img.ndim == 3:
+        img = img[..., :3][..., ::-1]
+    return img
+
+
+# -- held-out views ----------------------------------------------------------------------
+def heldout_metrics(
+    surfels: dict[str, np.ndarray],
+    cameras: Sequence[Camera],
+    views_dir: Path,
+    device: str = "cpu",
+) -> dict:
+    """L1, PSNR (dB) and SSIM of the surfels rendered into held-out cameras.
+
+    Every frame of ``surfels`` (``frame`` = session frame index) that has
+    ``views_dir/<cam>/<frame:06d>.png`` is rendered and compared; the per-camera values
+    are means over frames, ``mean`` the mean over cameras. The fit reconstructs only the
+    bubbles: behind them a held-out view sees the mean of the input views' background
+    images when they have its size, else the fit's constant background colour.
+    """
+    from surfphase.fit.outputs import render_surfels
+
+    out: dict = {}
+    bg_images = surfels.get("bg_images")
+    for cam in cameras:
+        folder = views_dir / cam.name
+        vals = []
+        for t, f in enumerate(np.asarray(surfels["frame"]).tolist()):
+            path = folder / f"{int(f):06d}.png"
+            if not path.exists():
+                continue
+            target = read_view(path)
+            if target.shape[:2] != (cam.height, cam.width):
+                raise ValueError(
+                    f"{path}: image is {target.shape[1]}×{target.shape[0]}, camera {cam.name} "
+                    f"is {cam.width}×{cam.height}"
+                )
+            bg = None
+            if bg_images is not None and bg_images.shape[1:3] == (cam.height, cam.width):
+                bg = bg_images.mean(axis=0, keepdims=True)
+            rgb = render_surfels(surfels, t, [cam], device, bg)[0].astype(np.float64)
+            if target.ndim == 2:
+                if rgb.shape[-1] != 1:
+                    raise ValueError(
+                        f"{path}: grey image, but the surfels have {rgb.shape[-1]} channels"
+                    )
+                rgb = rgb[..., 0]
+            vals.append(image_metrics.image_metrics(rgb, target))
+        if vals:
+            out[cam.name] = {k: float(np.mean([v[k] for v in vals])) for k in METRIC_KEYS}
+            out[cam.name]["frames"] = len(vals)
+    if out:
+        mean = {k: float(np.mean([out[c][k] for c in out])) for k in METRIC_KEYS}
+        out["mean"] = {**mean, "cameras": len(out)}
+    return out
+
+
+def chamfer_per_frame(
+    meshes_dir: Path,
+    gt_meshes_dir: Path,
+    frames: Sequence[int],
+    n_points: int = 20000,
+    seed: int = 0,
+) -> dict:
+    """Chamfer (mm) of ``meshes_dir/<frame:06d>.ply`` against the true mesh of each frame
+    that has both; ``mean_mm``/``mean_sq_mm2`` averaged over frames, and ``per_frame``."""
+    per = {}
+    for f in frames:
+        name = f"{int(f):06d}.ply"
+        a, b = meshes_dir / name, gt_meshes_dir / name
+        if a.exists() and b.exists():
+            per[int(f)] = geometry.mesh_chamfer(a, b, n_points, seed)
+    if not per:
+        return {}
+    return {
+        "mean_mm": float(np.mean([v["mean_mm"] for v in per.values()])),
+        "mean_sq_mm2": float(np.mean([v["mean_sq_mm2"] for v in per.values()])),
+        "frames": len(per),
+        "points_per_mesh": n_points,
+        "per_frame": {str(k): v for k, v in per.items()},
+    }
+
+
+def _finite(obj):
+    """JSON-safe copy: non-finite floats become None."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, float | np.floating) and not math.isfinite(float(obj)):
+        return None
+    return obj
+
+
+# -- the stage ---------------------------------------------------------------------------
+def run_evaluate(
+    ingest_dir: str | os.PathLike,
+    masks_dir: str | os.PathLike,
+    fit_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    gt_dir: str | os.PathLike | None = None,
+    meshes_dir: str | os.PathLike | None = None,
+    session: str | None = None,
+    device: str = "cpu",
+    max_match_dist: float = velocity.MAX_MATCH_DIST,
+    include_nucleation: bool = False,
+    reference_camera: str | None = None,
+) -> dict:
+    """Evaluate one session (see the module docstring); returns the metrics dict.
+
+    Args:
+        ingest_dir, masks_dir, fit_dir: outputs of the ingest, mask and fit stages.
+        out_dir: where ``metrics.json``, ``baseline_bubbles.csv`` and
+            ``velocity_table.csv`` go.
+        gt_dir: ground-truth folder (synthetic sessions), or None for real data.
+        meshes_dir: the method's meshes (``<frame:06d>.ply``), for the Chamfer distance.
+        session: session name (default: ``meta.json``'s).
+        device: torch device for rendering held-out views.
+        max_match_dist: gating distance of the bubble matching, metres.
+        include_nucleation: compare bubble 0 (nucleation region) too.
+        reference_camera: view of the 2D reference (default: the first input camera).
+    """
+    from surfphase.device import resolve_device
+
+    ingest_dir, masks_dir, fit_dir, out_dir = map(Path, (ingest_dir, masks_dir, fit_dir, out_dir))
+    data = read_session(ingest_dir, masks_dir)
+    name = session or data["session"]
+    fit_cols = ["frame", "bubble", "x", "y", "z", "vx", "vy", "vz"]
+    method = read_table(fit_dir / "bubbles.csv", fit_cols, name)
+    base = bl.baseline_bubbles(data["cameras"], data["labels"], data["frames"], data["fps"])
+    keep = (lambda df: df) if include_nucleation else (lambda df: df[df["bubble"] >= 1])
+    metrics: dict = {
+        "session": name,
+        "frames": int(len(data["frames"])),
+        "fps": data["fps"],
+        "cameras": [c.name for c in data["cameras"]],
+        "settings": {
+            "max_match_dist_m": float(max_match_dist),
+            "include_nucleation": bool(include_nucleation),
+        },
+    }
+    # The baseline is compared on the frames the method reconstructed, so both errors in a
+    # table average over the same frames (baseline_bubbles.csv keeps every frame).
+    base_cmp = base[base["frame"].isin(method["frame"].unique())]
+    metrics["settings"]["frames_compared"] = int(base_cmp["frame"].nunique())
+    tables = []
+    if gt_dir is not None:
+        gt_dir = Path(gt_dir)
+        truth = read_table(gt_dir / "bubbles.csv", fit_cols, name)
+        metrics["velocity"] = {}
+        for label, pred in (("method", method), ("baseline", base_cmp)):
+            m = velocity.match_bubbles(keep(pred), truth, max_match_dist)
+            metrics["velocity"][label] = velocity.velocity_errors(m)
+            m.insert(0, "source", label)
+            tables.append(m)
+        surfels_path = fit_dir / "surfels.npz"
+        views_dir = gt_dir / "views"
+        if surfels_path.exists() and views_dir.is_dir():
+            from surfphase.fit.outputs import load_surfels
+
+            gt_cams = load_cameras(gt_dir / "cameras.json")
+            held = [c for n, c in gt_cams.items() if (views_dir / n).is_dir()]
+            metrics["heldout"] = heldout_metrics(
+                load_surfels(surfels_path), held, views_dir, str(resolve_device(device))
+            )
+        if meshes_dir is not None:
+            metrics["chamfer_mm"] = chamfer_per_frame(
+                Path(meshes_dir), gt_dir / "meshes", data["frames"].tolist()
+            )
+    cams = {c.name: (c, lab) for c, lab in zip(data["cameras"], data["labels"], strict=True)}
+    ref_name = reference_camera or data["cameras"][0].name
+    if ref_name not in cams:
+        raise ValueError(
+            f"{ingest_dir}: session {name}: no camera {ref_name!r} for the 2D reference"
+        )
+    ref_cam, ref_lab = cams[ref_name]
+    ref = reference2d.reference_velocities(ref_cam, ref_lab, data["frames"], data["fps"], base)
+    metrics["reference2d"] = {"camera": ref_name}
+    for label, pred in (("method", method), ("baseline", base_cmp)):
+        res, rows = reference2d.compare_to_reference(keep(pred), ref, ref_cam)
+        metrics["reference2d"][label] = res
+        if gt_dir is None:
+            rows.insert(0, "source", label)
+            tables.append(rows)
+    metrics = _finite(metrics)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out_dir / "baseline_bubbles.csv", base.to_csv(index=False))
+    table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
+    atomic_write_text(out_dir / "velocity_table.csv", table.to_csv(index=False))
+    atomic_write_json(out_dir / "metrics.json", metrics)
+    return metrics
+
+
+def campaign_table(metrics: Sequence[dict]) -> pd.DataFrame:
+    """One row per session: the metrics JSONs flattened (``velocity.method.relative_error``
+    …), session first, then velocity (method beside baseline), held-out means, Chamfer and
+    the 2D reference; per-frame Chamfer values are left out."""
+    flat = []
+    for m in metrics:
+        m = dict(m)
+        if isinstance(m.get("chamfer_mm"), dict):
+            m["chamfer_mm"] = {k: v for k, v in m["chamfer_mm"].items() if k != "per_frame"}
+        m.pop("cameras", None)
+        flat.append(m)
+    df = pd.json_normalize(flat, sep=".")
+    order = ["session", "velocity.", "heldout.mean.", "chamfer_mm.", "reference2d.", "heldout."]
+    cols: list[str] = []
+    for prefix in order:
+        cols += [c for c in df.columns if c.startswith(prefix) and c not in cols]
+    cols += [c for c in df.columns if c not in cols]
+    return df[cols]

@@ -1,0 +1,334 @@
+"""The embedded video prior: a small (2+1)D U-Net trained from scratch by rectified flow.
+
+Pixel space, grayscale, values mapped from [0, 1] to [−1, 1]. The network predicts the
+velocity v = ε − x0 of the straight path x_t = (1 − t)·x0 + t·ε (t ∈ [0, 1], t = 1 is
+pure noise); sampling and SDEdit integrate dx/dt = v from t_start to 0 with Euler steps
+(:mod:`surfphase.prior.sdedit`).
+
+Sized for two CPU cores: spatial 3×3 convolutions run per frame (``Conv2d`` on frames
+folded into the batch, much faster on CPUs than ``Conv3d``), temporal mixing is a
+3-tap convolution along time, and training uses random ``crop × crop`` windows of
+``frames`` consecutive frames at the clips' native pixel scale. The network is fully
+convolutional, so it refines whole frames of any size (padded to a multiple of 4);
+along time, videos longer than ``frames`` are refined in overlapping chunks that
+share one noise draw and are cross-faded.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from surfphase.io import atomic_path, atomic_write_json
+from surfphase.prior.interface import check_video
+from surfphase.prior.sdedit import check_strength, flow_sdedit_times, refine_in_chunks
+
+WEIGHTS = "embedded.pt"
+
+DEFAULT_PARAMS: dict = {
+    "frames": 8,  # frames per training window and refinement chunk
+    "overlap": 2,  # frames shared by consecutive refinement chunks
+    "crop": 32,  # training crop, pixels (native scale)
+    "channels": [16, 32, 64],  # U-Net widths per level (each level halves H and W)
+    "steps": 600,  # optimiser steps
+    "batch": 8,  # windows per step
+    "lr": 1e-3,  # AdamW learning rate (cosine decay to 5 %, 20-step warm-up)
+    "ema": 0.995,  # decay of the weight average used for sampling
+    "sample_steps": 24,  # Euler steps of a full (strength 1) generation
+    "seed": 0,
+}
+
+
+class _SpatialConv(nn.Module):
+    """3×3 convolution applied to each frame: (B, C, T, H, W) → (B, C', T, H, W)."""
+
+    def __init__(self, cin: int, cout: int, kernel: int = 3, stride: int = 1):
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, kernel, stride=stride, padding=(kernel - 1) // 2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, c, t, h, w = x.shape
+        y = self.conv(x.transpose(1, 2).reshape(b * t, c, h, w))
+        return y.reshape(b, t, *y.shape[1:]).transpose(1, 2)
+
+
+class _TemporalConv(nn.Module):
+    """3-tap convolution along time (zero padded): (B, C, T, H, W) → (B, C', T, H, W)."""
+
+    def __init__(self, cin: int, cout: int):
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, (3, 1), padding=(1, 0))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, c, t, h, w = x.shape
+        return self.conv(x.reshape(b, c, t, h * w)).reshape(b, -1, t, h, w)
+
+
+class _ResBlock(nn.Module):
+    """Residual (2+1)D block with the time embedding applied as scale and shift."""
+
+    def __init__(self, cin: int, cout: int, emb: int):
+        super().__init__()
+        self.norm1 = nn.GroupNorm(min(8, cin), cin)
+        self.space1, self.time1 = _SpatialConv(cin, cout), _TemporalConv(cout, cout)
+        self.film = nn.Linear(emb, 2 * cout)
+        self.norm2 = nn.GroupNorm(min(8, cout), cout)
+        self.space2, self.time2 = _SpatialConv(cout, cout), _TemporalConv(cout, cout)
+        nn.init.zeros_(self.time2.conv.weight)  # start as identity: stabler early training
+        nn.init.zeros_(self.time2.conv.bias)
+        self.skip = nn.Identity() if cin == cout else _SpatialConv(cin, cout, kernel=1)
+
+    def forward(self, x: torch.Tensor, emb: torch.Tensor) -> torch.Tensor:
+        h = self.time1(self.space1(F.silu(self.norm1(x))))
+        scale, shift = self.film(emb)[:, :, None, None, None].chunk(2, dim=1)
+        h = F.silu(self.norm2(h) * (1 + scale) + shift)
+        return self.skip(x) + self.time2(self.space2(h))
+
+
+class VideoUNet(nn.Module):
+    """Velocity network v(x_t, t): (B, 1, T, H, W), (B,) → (B, 1, T, H, W).
+
+    H and W must be multiples of 2^(levels − 1); T is free (temporal convolutions).
+    """
+
+    def __init__(self, channels: list[int] | tuple[int, ...] = (16, 32, 64), emb: int = 64):
+        super().__init__()
+        ch = list(channels)
+        self.emb_dim = emb
+        self.emb = nn.Sequential(nn.Linear(emb, 2 * emb), nn.SiLU(), nn.Linear(2 * emb, emb))
+        self.inp = _SpatialConv(1, ch[0])
+        self.down = nn.ModuleList()
+        self.pool = nn.ModuleList()
+        c = ch[0]
+        for i, co in enumerate(ch):
+            self.down.append(_ResBlock(c, co, emb))
+            c = co
+            if i < len(ch) - 1:
+                self.pool.append(_SpatialConv(c, c, kernel=3, stride=2))
+        self.mid = _ResBlock(c, c, emb)
+        self.up = nn.ModuleList()
+        for co in reversed(ch):
+            self.up.append(_ResBlock(c + co, co, emb))
+            c = co
+        self.out_norm = nn.GroupNorm(min(8, c), c)
+        self.out = _SpatialConv(c, 1)
+        nn.init.zeros_(self.out.conv.weight)
+        nn.init.zeros_(self.out.conv.bias)
+
+    @property
+    def multiple(self) -> int:
+        """H and W must be multiples of this."""
+        return 2 ** len(self.pool)
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        half = self.emb_dim // 2
+        freqs = torch.exp(-math.log(1000.0) * torch.arange(half, device=x.device) / half)
+        ang = 1000.0 * t[:, None].to(x.dtype) * freqs[None]
+        e = self.emb(torch.cat([ang.sin(), ang.cos()], dim=1))
+        h = self.inp(x)
+        skips = []
+        for i, block in enumerate(self.down):
+            h = block(h, e)
+            skips.append(h)
+            if i < len(self.pool):
+                h = self.pool[i](h)
+        h = self.mid(h, e)
+        for block in self.up:
+            skip = skips.pop()
+            if h.shape[-2:] != skip.shape[-2:]:
+                h = F.interpolate(h, size=skip.shape[2:], mode="nearest")
+            h = block(torch.cat([h, skip], dim=1), e)
+        return self.out(F.silu(self.out_norm(h)))
+
+
+class EmbeddedPrior:
+    """Rectified-flow video prior trained from scratch (the default backend).
+
+    Args:
+        params: overrides of :data:`DEFAULT_PARAMS`.
+        device: torch device for training and inference.
+    """
+
+    backend = "embedded"
+
+    def __init__(self, params: dict | None = None, device: str | torch.device = "cpu"):
+        unknown = set(params or {}) - set(DEFAULT_PARAMS)
+        if unknown:
+            raise ValueError(f"embedded prior: unknown parameters {sorted(unknown)}")
+        self.params = {**DEFAULT_PARAMS, **(params or {})}
+        self.device = torch.device(device)
+        torch.manual_seed(int(self.params["seed"]))
+        self.model = VideoUNet(self.params["channels"]).to(self.device)
+        self.ema = copy.deepcopy(self.model).eval().requires_grad_(False)
+
+    # ------------------------------------------------------------------ training
+    def train(self, clips: list[np.ndarray], params: dict | None = None, log=print) -> dict:
+        """Fit the network on monocular clips; returns a log (losses, seconds).
+
+        Args:
+            clips: list of (T_i, H_i, W_i) float32 videos in [0, 1]; each needs at least
+                ``frames`` frames and ``crop`` pixels per side.
+            params: overrides of the training parameters (``steps``, ``batch``, ``lr``…).
+            log: called with a progress line every 50 steps (``None`` for silence).
+        """
+        if params:
+            unknown = set(params) - set(DEFAULT_PARAMS)
+            if unknown:
+                raise ValueError(f"embedded prior: unknown parameters {sorted(unknown)}")
+            arch = {"channels"} & {k for k in params if params[k] != self.params[k]}
+            if arch:
+                raise ValueError("embedded prior: set 'channels' when creating the prior")
+            self.params.update(params)
+        p = self.params
+        T, crop = int(p["frames"]), int(p["crop"])
+        if not clips:
+            raise ValueError("embedded prior: no training clips")
+        for k, c in enumerate(clips):
+            check_video(c, f"clip {k}")
+            if c.shape[0] < T or min(c.shape[1:]) < crop:
+                raise ValueError(
+                    f"embedded prior: clip {k} has shape {c.shape}; need ≥ {T} frames and "
+                    f"≥ {crop} px per side (params 'frames', 'crop')"
+                )
+        data = [torch.from_numpy(np.ascontiguousarray(c, np.float32)) * 2 - 1 for c in clips]
+        rng = np.random.default_rng([int(p["seed"]), 77])
+        gen = torch.Generator().manual_seed(int(p["seed"]))
+        steps, batch = int(p["steps"]), int(p["batch"])
+        opt = torch.optim.AdamW(self.model.parameters(), lr=float(p["lr"]), weight_decay=0.0)
+
+        def lr_at(i: int) -> float:
+            warm = min(1.0, (i + 1) / 20)
+            return warm * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * i / max(1, steps))))
+
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_at)
+        self.model.train()
+        losses, t0 = [], time.perf_counter()
+        for step in range(steps):
+            x0 = torch.stack([self._window(data, rng, T, crop) for _ in range(batch)])
+            x0 = x0[:, None].to(self.device)  # (B, 1, T, crop, crop)
+            noise = torch.randn(x0.shape, generator=gen).to(self.device)
+            t = torch.rand(batch, generator=gen).to(self.device)
+            xt = (1 - t[:, None, None, None, None]) * x0 + t[:, None, None, None, None] * noise
+            loss = F.mse_loss(self.model(xt, t), noise - x0)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
+            opt.step()
+            sched.step()
+            self._update_ema(min(float(p["ema"]), (1 + step) / (10 + step)))
+            losses.append(float(loss.detach()))
+            if log and ((step + 1) % 50 == 0 or step + 1 == steps):
+                log(
+                    f"step {step + 1}/{steps} loss {np.mean(losses[-50:]):.4f} "
+                    f"{time.perf_counter() - t0:.1f} s"
+                )
+        self.model.eval()
+        return {
+            "steps": steps,
+            "seconds": round(time.perf_counter() - t0, 2),
+            "loss_first50": float(np.mean(losses[:50])),
+            "loss_last50": float(np.mean(losses[-50:])),
+            "losses": [round(v, 5) for v in losses],
+        }
+
+    @staticmethod
+    def _window(data: list[torch.Tensor], rng: np.random.Generator, T: int, crop: int):
+        """A random (T, crop, crop) window of a random clip, mirrored left-right at random.
+
+        No vertical flips or time reversal: bubbles rise, and the prior should know it.
+        """
+        c = data[int(rng.integers(len(data)))]
+        a = int(rng.integers(c.shape[0] - T + 1))
+        y = int(rng.integers(c.shape[1] - crop + 1))
+        x = int(rng.integers(c.shape[2] - crop + 1))
+        w = c[a : a + T, y : y + crop, x : x + crop]
+        return w.flip(-1) if rng.random() < 0.5 else w
+
+    @torch.no_grad()
+    def _update_ema(self, decay: float) -> None:
+        for pe, pm in zip(self.ema.parameters(), self.model.parameters(), strict=True):
+            pe.mul_(decay).add_(pm.detach(), alpha=1 - decay)
+
+    # ----------------------------------------------------------------- sampling
+    @torch.no_grad()
+    def _integrate(self, x: torch.Tensor, times: np.ndarray) -> torch.Tensor:
+        """Euler-integrate dx/dt = v(x, t) along ``times`` (decreasing); x (B, 1, T, H, W)."""
+        m = self.ema.multiple
+        h, w = x.shape[-2:]
+        ph, pw = (-h) % m, (-w) % m
+        for t_now, t_next in zip(times[:-1], times[1:], strict=True):
+            xin = F.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
+            tt = torch.full((x.shape[0],), float(t_now), device=x.device)
+            v = self.ema(xin, tt)[..., :h, :w]
+            x = x + float(t_next - t_now) * v
+        return x
+
+    def refine(self, video: np.ndarray, strength: float, seed: int = 0) -> np.ndarray:
+        """SDEdit: noise ``video`` to t = ``strength`` and denoise it with the prior.
+
+        Args:
+            video: (T, H, W) float32 in [0, 1].
+            strength: SDEdit strength s ∈ [0, 1] (starting time t_start = s).
+            seed: seed of the noise draw (one draw for the whole video).
+
+        Returns:
+            (T, H, W) float32 in [0, 1]; the input itself (a copy) when s = 0.
+        """
+        check_video(video, "video")
+        times = flow_sdedit_times(check_strength(strength), int(self.params["sample_steps"]))
+        video = np.asarray(video, np.float32)
+        if times.size == 0:
+            return video.copy()
+        x0 = torch.from_numpy(np.ascontiguousarray(video)) * 2 - 1
+        noise = torch.randn(x0.shape, generator=torch.Generator().manual_seed(int(seed)))
+        s = float(times[0])
+        xs = ((1 - s) * x0 + s * noise).numpy()
+
+        def run(window: np.ndarray, _k: int) -> np.ndarray:
+            x = torch.from_numpy(window)[None, None].to(self.device)
+            return self._integrate(x, times)[0, 0].cpu().numpy()
+
+        frames = int(self.params["frames"])
+        out = refine_in_chunks(xs, frames, int(self.params["overlap"]), run)
+        return np.clip((out + 1) / 2, 0.0, 1.0).astype(np.float32)
+
+    def sample(self, n: int, frames: int, size: int, seed: int = 0) -> np.ndarray:
+        """Generate ``n`` videos from pure noise: (n, frames, size, size) float32 in [0, 1]."""
+        gen = torch.Generator().manual_seed(int(seed))
+        noise = torch.randn((n, 1, frames, size, size), generator=gen).to(self.device)
+        times = flow_sdedit_times(1.0, int(self.params["sample_steps"]))
+        x = self._integrate(noise, times)
+        return np.clip((x[:, 0].cpu().numpy() + 1) / 2, 0.0, 1.0).astype(np.float32)
+
+    # ---------------------------------------------------------------- save/load
+    def save(self, folder: str | Path) -> None:
+        """Write ``folder/embedded.pt`` (weights and EMA weights) and ``folder/prior.json``."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        state = {"model": self.model.state_dict(), "ema": self.ema.state_dict()}
+        with atomic_path(folder / WEIGHTS) as tmp:
+            torch.save(state, tmp)
+        atomic_write_json(folder / "prior.json", {"backend": self.backend, "params": self.params})
+
+    @classmethod
+    def load(cls, folder: str | Path, device: str | torch.device = "cpu") -> EmbeddedPrior:
+        """Read a prior written by :meth:`save`."""
+        folder = Path(folder)
+        meta = json.loads((folder / "prior.json").read_text())
+        prior = cls(meta["params"], device=device)
+        path = folder / WEIGHTS
+        if not path.is_file():
+            raise FileNotFoundError(f"embedded prior: weights {path} not found")
+        state = torch.load(path, map_location=prior.device, weights_only=True)
+        prior.model.load_state_dict(state["model"])
+        prior.ema.load_state_dict(state["ema"])
+        prior.model.eval()
+        return prior
