@@ -15,6 +15,7 @@ configfile: "config/config.yaml"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/ingest.smk"
+include: "workflow/rules/mask.smk"
 
 
 rule all:
@@ -22,4 +23,4 @@ rule all:
     default_target: True
     input:
         expand(f"{RESULTS}/calib/{{rig}}/cameras.json", rig=RIGS),
-        expand(f"{RESULTS}/{{session}}/ingest", session=SESSIONS),
+        expand(f"{RESULTS}/{{session}}/masks", session=SESSIONS),

@@ -155,6 +155,9 @@ def test_evaluate_with_ground_truth(session):
     # The 2D reference from cam0 is computed too, for method and baseline.
     assert m["reference2d"]["camera"] == "cam0"
     assert m["reference2d"]["method"]["matched"] == 10
+    # The truth against the 2D reference: the reference itself is within a few %.
+    t = m["reference2d"]["truth"]
+    assert t["matched"] == 10 and t["relative_error_y"] < 0.1
 
 
 def test_heldout_renders_the_right_frame(session, tmp_path):

@@ -82,6 +82,16 @@ def test_command_writes_every_output(ingest, tmp_path, capsys):
     assert "masks written" in capsys.readouterr().out
 
 
+def test_params_json_as_the_workflow_passes_them(ingest, tmp_path, capsys):
+    d, _ = ingest
+    out = tmp_path / "masks"
+    settings = json.dumps({"backend": "classical", "overlay_frames": 1})
+    assert main(["mask", "--ingest", str(d), "--out", str(out), "--params-json", settings]) == 0
+    assert len(list((out / "overlays").iterdir())) == 1
+    rc = main(["mask", "--ingest", str(d), "--out", str(out), "--params-json", "[1]"])
+    assert rc == 2 and "expected a JSON object" in capsys.readouterr().err
+
+
 def test_integer_frames_give_the_same_masks(ingest, tmp_path):
     d, _ = ingest
     run_mask_stage(d, tmp_path / "a", {"overlay_frames": 0})

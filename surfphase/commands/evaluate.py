@@ -30,6 +30,12 @@ def _run(args: argparse.Namespace) -> int:
         parts.append(
             f"{label} velocity error {rel:.3f}" if rel is not None else f"{label}: no match"
         )
+    if "velocity" not in m:
+        for label, r in m["reference2d"].items():
+            if isinstance(r, dict) and r.get("relative_error_y") is not None:
+                parts.append(
+                    f"{label} vs 2D reference: relative error y {r['relative_error_y']:.3f}"
+                )
     mean = (m.get("heldout") or {}).get("mean")
     if mean:
         parts.append(f"held-out PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}")

@@ -18,7 +18,9 @@ Outputs in ``OUT`` (each written whole or not at all):
   ``psnr`` dB, ``ssim``, ``frames``); ``velocity`` (``method`` and ``baseline``:
   ``mean_abs_error_mps``, ``relative_error``, ``mean_speed_gt_mps``, ``matched``);
   ``chamfer_mm`` (with method meshes); ``reference2d`` (always: the 2D reference's
-  relative x/y errors of ``method`` and ``baseline``); non-finite numbers are ``null``;
+  relative x/y errors of ``method`` and ``baseline``; with ground truth also ``truth``,
+  the true velocities of the baseline-matched bubbles against the reference, which
+  scores the reference itself); non-finite numbers are ``null``;
 * ``baseline_bubbles.csv`` — the two-view centroid baseline (:mod:`.baseline`);
 * ``velocity_table.csv`` — one row per compared bubble-frame, column ``source``
   (``method``/``baseline``): with ground truth the matches of
@@ -266,6 +268,7 @@ def run_evaluate(
     base_cmp = base[base["frame"].isin(method["frame"].unique())]
     metrics["settings"]["frames_compared"] = int(base_cmp["frame"].nunique())
     tables = []
+    truth_by_mask_id = None
     if gt_dir is not None:
         gt_dir = Path(gt_dir)
         truth = read_table(gt_dir / "bubbles.csv", fit_cols, name)
@@ -273,6 +276,12 @@ def run_evaluate(
         for label, pred in (("method", method), ("baseline", base_cmp)):
             m = velocity.match_bubbles(keep(pred), truth, max_match_dist)
             metrics["velocity"][label] = velocity.velocity_errors(m)
+            if label == "baseline":
+                # The truth under the masks' bubble ids (through the baseline's matches),
+                # to score the 2D reference itself.
+                truth_by_mask_id = m[["frame", "bubble", "gt_vx", "gt_vy", "gt_vz"]].rename(
+                    columns={"gt_vx": "vx", "gt_vy": "vy", "gt_vz": "vz"}
+                )
             m.insert(0, "source", label)
             tables.append(m)
         surfels_path = fit_dir / "surfels.npz"
@@ -304,6 +313,10 @@ def run_evaluate(
         if gt_dir is None:
             rows.insert(0, "source", label)
             tables.append(rows)
+    if truth_by_mask_id is not None:
+        metrics["reference2d"]["truth"] = reference2d.compare_to_reference(
+            truth_by_mask_id, ref, ref_cam
+        )[0]
     metrics = _finite(metrics)
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out_dir / "baseline_bubbles.csv", base.to_csv(index=False))
