@@ -65,8 +65,10 @@ def test_killed_fit_resumes_to_the_same_result(toy, tmp_path):
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert not (out / "surfels.npz").exists()
+    # Killed after frame 1's record: the state says 1 or 2 frames are done (the record is
+    # written before the state), never all 3.
     done = torch.load(ckpt / "state.pt", weights_only=False)["next_frame"]
-    assert 2 <= done < 3
+    assert 1 <= done < 3
     subprocess.run(_fit_cmd(ingest, masks, out, cfg, ckpt), check=True, env=env)
 
     a, b = load_surfels(ref / "surfels.npz"), load_surfels(out / "surfels.npz")

@@ -35,13 +35,18 @@ def test_wan_start_noise_level_is_what_the_pipeline_uses(strength):
     sch = FlowMatchEulerDiscreteScheduler(shift=7.0)
     sch.set_timesteps(n)
     fake_pipe = SimpleNamespace(scheduler=sch)
-    steps, n_run = WanVideoToVideoPipeline.get_timesteps(fake_pipe, n, sch.timesteps, strength, "cpu")
+    steps, n_run = WanVideoToVideoPipeline.get_timesteps(
+        fake_pipe, n, sch.timesteps, strength, "cpu"
+    )
     i0, n_ours = sdedit.img2img_steps(strength, n)
     assert n_run == n_ours == len(steps) == int(n * strength)
     sigma = sdedit.flow_match_start_sigma(strength, n, shift=7.0)
     assert float(steps[0]) / 1000 == pytest.approx(sigma, abs=1e-6)
     # the noising the pipeline applies at that timestep: x = σ·ε + (1 − σ)·x0
-    x0, eps = torch.full((1, 2, 3), 0.7), torch.randn(1, 2, 3, generator=torch.Generator().manual_seed(0))
+    x0, eps = (
+        torch.full((1, 2, 3), 0.7),
+        torch.randn(1, 2, 3, generator=torch.Generator().manual_seed(0)),
+    )
     sch.set_begin_index(i0)
     noised = sch.scale_noise(x0, steps[:1], eps)
     torch.testing.assert_close(noised, sigma * eps + (1 - sigma) * x0, atol=1e-6, rtol=0)
@@ -64,7 +69,9 @@ def test_flow_times_start_at_strength(strength, n):
     assert np.all(np.diff(t) < 0)
 
 
-@pytest.mark.parametrize("T,chunk,overlap", [(24, 8, 2), (25, 9, 4), (5, 9, 4), (33, 33, 8), (10, 4, 3)])
+@pytest.mark.parametrize(
+    "T,chunk,overlap", [(24, 8, 2), (25, 9, 4), (5, 9, 4), (33, 33, 8), (10, 4, 3)]
+)
 def test_temporal_chunks_cover_and_overlap(T, chunk, overlap):
     w = sdedit.temporal_chunks(T, chunk, overlap)
     assert w[0][0] == 0 and w[-1][1] == T
@@ -81,7 +88,9 @@ def test_merge_chunks_crossfades_without_seams():
     np.testing.assert_allclose(same, video, atol=1e-6)
     # window k returns the constant k: in an overlap the blend moves monotonically
     w = sdedit.temporal_chunks(20, 8, 3)
-    out = sdedit.merge_chunks(20, w, [np.full((b - a, 1, 1), float(k)) for k, (a, b) in enumerate(w)])
+    out = sdedit.merge_chunks(
+        20, w, [np.full((b - a, 1, 1), float(k)) for k, (a, b) in enumerate(w)]
+    )
     assert out[0, 0, 0] == 0.0 and out[-1, 0, 0] == len(w) - 1
     assert np.all(np.diff(out[:, 0, 0]) >= 0)
 
@@ -120,3 +129,11 @@ def test_embedded_refine_deterministic_per_seed():
     c = prior.refine(video, 0.35, seed=6)
     assert a.shape == video.shape and np.array_equal(a, b) and not np.array_equal(a, c)
     assert a.min() >= 0.0 and a.max() <= 1.0
+
+
+def test_view_strengths_follow_the_design():
+    got = [sdedit.view_strength(v) for v in range(1, 12)]
+    assert got == [0.2] * 3 + [0.35] * 5 + [0.2] * 3
+    assert sdedit.view_strength(2, near=0.1, far=0.5, far_views=(2,)) == 0.5
+    with pytest.raises(ValueError):
+        sdedit.view_strength(0)

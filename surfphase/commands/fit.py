@@ -38,6 +38,14 @@ def _run(args: argparse.Namespace) -> int:
     from surfphase.fit.stage import run_fit
 
     params, cfg_device = _load_config(args.config)
+    if args.params_json:
+        try:
+            extra = json.loads(args.params_json)
+        except ValueError as e:
+            raise ValueError(f"--params-json: not valid JSON ({e})") from e
+        if not isinstance(extra, dict):
+            raise ValueError("--params-json: expected a JSON object of fit parameters")
+        params.update(extra)
     if args.frames is not None:
         params["frames"] = args.frames
     if args.no_sdf:
@@ -72,6 +80,11 @@ def register(subparsers) -> None:
     p.add_argument("--masks", required=True, help="mask folder (<cam>_labels.npy)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="config YAML (its 'fit:' section overrides the defaults)")
+    p.add_argument(
+        "--params-json",
+        default=None,
+        help="fit parameters as a JSON object (over --config; see surfphase.fit.stage.DEFAULTS)",
+    )
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
     p.add_argument("--frames", type=int, default=None, help="fit only the first N frames")
     p.add_argument("--no-sdf", action="store_true", help="ablation: free opacities, no SDF")

@@ -203,7 +203,6 @@ def refine_video(
     seconds = time.perf_counter() - t0
     out = Path(out)
     base = out.with_suffix("") if out.suffix == ".npy" else out
-    write_video(base, refined, bit_depth)
     info = {
         "prior": str(prior_dir),
         "backend": prior.backend,
@@ -214,7 +213,9 @@ def refine_video(
         "refine_s": round(seconds, 2),
         "mean_abs_change": float(np.abs(refined - frames).mean()),
     }
+    base.mkdir(parents=True, exist_ok=True)
     atomic_write_json(base / "refine.json", info)
+    write_video(base, refined, bit_depth)  # OUT.npy last
     return info
 
 

@@ -452,7 +452,9 @@ def _spawn_bubbles(
         vals = new.state()
         if model.use_sdf:
             # New surfels start at opacity 1/2 under the current γ.
-            vals["sdf"] = torch.full_like(vals["sdf"], HALF_OPACITY_GF / float(model.gamma.detach()))
+            vals["sdf"] = torch.full_like(
+                vals["sdf"], HALF_OPACITY_GF / float(model.gamma.detach())
+            )
         append_surfels(model, None, {k: v for k, v in vals.items() if v.dim() > 0})
         added.append(b)
     return added

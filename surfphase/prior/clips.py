@@ -59,7 +59,9 @@ def read_video(path: str | Path) -> np.ndarray:
         if img.ndim == 3:
             img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
         if frames and img.shape != frames[0].shape:
-            raise ValueError(f"{f}: size {img.shape} differs from {files[0].name} {frames[0].shape}")
+            raise ValueError(
+                f"{f}: size {img.shape} differs from {files[0].name} {frames[0].shape}"
+            )
         frames.append(img)
     return _to_unit(np.stack(frames), str(path))
 
@@ -98,17 +100,18 @@ def write_video(out: str | Path, video: np.ndarray, bit_depth: int = 8) -> None:
     """Write (T, H, W) [0, 1] ``video`` as ``out.npy`` (float32) and PNG frames ``out/``.
 
     ``out`` may be given with or without the ``.npy`` suffix; the PNG folder is the
-    same path without it. Each file is written whole or not at all.
+    same path without it. Each file is written whole or not at all, and the ``.npy``
+    comes last, so a workflow can take it as the sign that the video is complete.
     """
     from surfphase.io import atomic_path, save_npy
 
     out = Path(out)
     base = out.with_suffix("") if out.suffix == ".npy" else out
     v = np.clip(np.asarray(video, np.float32), 0.0, 1.0)
-    save_npy(base.with_suffix(".npy"), v)
     base.mkdir(parents=True, exist_ok=True)
     scale, dtype = (255, np.uint8) if bit_depth == 8 else (65535, np.uint16)
     for k, frame in enumerate(v):
         with atomic_path(base / f"{k:06d}.png") as tmp:
             if not cv2.imwrite(str(tmp), np.round(frame * scale).astype(dtype)):
                 raise OSError(f"could not write {base / f'{k:06d}.png'}")
+    save_npy(base.with_suffix(".npy"), v)  # last: its presence means the frames are complete

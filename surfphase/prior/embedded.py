@@ -265,7 +265,7 @@ class EmbeddedPrior:
         h, w = x.shape[-2:]
         ph, pw = (-h) % m, (-w) % m
         for t_now, t_next in zip(times[:-1], times[1:], strict=True):
-            xin = F.pad(x, (0, pw, 0, ph), mode="replicate") if (ph or pw) else x
+            xin = F.pad(x, (0, pw, 0, ph, 0, 0), mode="replicate") if (ph or pw) else x
             tt = torch.full((x.shape[0],), float(t_now), device=x.device)
             v = self.ema(xin, tt)[..., :h, :w]
             x = x + float(t_next - t_now) * v

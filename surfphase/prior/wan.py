@@ -136,7 +136,7 @@ class WanPrior:
         self.pipe.set_progress_bar_config(disable=True)
         self.has_lora = False
         if lora is not None:
-            self.pipe.load_lora_weights(str(lora), weight_name=LORA_FILE)
+            self.pipe.load_lora_weights(str(lora), weight_name=LORA_FILE, adapter_name="default")
             self.has_lora = True
 
     # ----------------------------------------------------------- helpers
@@ -204,6 +204,8 @@ class WanPrior:
                 )
             )
             self.has_lora = True
+        for name, q in tr.named_parameters():  # only the LoRA weights train
+            q.requires_grad_("lora_" in name)
         trainable = [q for q in tr.parameters() if q.requires_grad]
         for q in trainable:  # LoRA weights train in float32 even on a bfloat16 base
             q.data = q.data.float()

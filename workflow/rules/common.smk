@@ -144,3 +144,16 @@ def ingest_cameras(wc):
     if not rig_is_known(wc.session):
         return []
     return f"{RESULTS}/calib/{session_rig(wc.session)}/cameras.json"
+
+
+def evaluate_inputs(wc):
+    """Stage outputs the evaluation reads, plus the session's ground truth if it has one."""
+    inputs = {
+        "ingest": f"{RESULTS}/{wc.session}/ingest",
+        "masks": f"{RESULTS}/{wc.session}/masks",
+        "fit": f"{RESULTS}/{wc.session}/fit/surfels.npz",
+    }
+    gt = resolve(sessions, sessions.loc[wc.session].get("gt", ""))
+    if gt and os.path.isdir(gt):
+        inputs["gt"] = gt
+    return inputs

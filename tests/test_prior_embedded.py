@@ -1,0 +1,144 @@
+"""The embedded prior: training, save/load, chunked refinement, and the two commands."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from surfphase.cli import main
+from surfphase.prior import load_prior
+from surfphase.prior.clips import find_clips, read_video
+from surfphase.prior.embedded import EmbeddedPrior
+
+SMALL = {"channels": [8, 16], "frames": 4, "overlap": 1, "crop": 16, "batch": 2,
+         "steps": 30, "sample_steps": 4, "lr": 5e-3}  # fmt: skip
+
+
+def bubble_clip(seed: int, frames: int = 10, size: int = 24) -> np.ndarray:
+    """(frames, size, size) [0, 1]: dark rings rising over a bright background."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size].astype(np.float32)
+    centres = rng.uniform(4, size - 4, (3, 2))
+    radii = rng.uniform(2.0, 4.0, 3)
+    video = np.full((frames, size, size), 0.8, np.float32)
+    for f in range(frames):
+        for (cy, cx), r in zip(centres, radii, strict=True):
+            d = np.hypot(yy - (cy - 0.7 * f) % size, xx - cx)
+            video[f] -= 0.6 * np.exp(-(((d - r) / 0.8) ** 2))
+    return np.clip(video, 0, 1)
+
+
+def write_png_clip(folder, video: np.ndarray) -> None:
+    folder.mkdir(parents=True)
+    for k, frame in enumerate(video):
+        cv2.imwrite(str(folder / f"{k:06d}.png"), np.round(frame * 255).astype(np.uint8))
+
+
+def flow_loss(model, clips, seed=0) -> float:
+    """Mean ‖v(x_t, t) − (ε − x0)‖² over fixed windows, noise and times (an independent check)."""
+    g = torch.Generator().manual_seed(seed)
+    x0 = torch.stack([torch.from_numpy(c[:4, :16, :16]) * 2 - 1 for c in clips])[:, None]
+    eps = torch.randn(x0.shape, generator=g)
+    t = torch.linspace(0.1, 0.9, len(clips))
+    tt = t[:, None, None, None, None]
+    with torch.no_grad():
+        v = model((1 - tt) * x0 + tt * eps, t)
+    return float(((v - (eps - x0)) ** 2).mean())
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    torch.set_num_threads(1)
+    prior = EmbeddedPrior(SMALL)
+    clips = [bubble_clip(0), bubble_clip(1)]
+    held_out = [bubble_clip(k) for k in range(20, 26)]
+    before = flow_loss(prior.model, held_out)
+    log = prior.train(clips, log=None)
+    log["held_out_before"], log["held_out_after"] = before, flow_loss(prior.model, held_out)
+    folder = tmp_path_factory.mktemp("prior")
+    prior.save(folder)
+    return prior, log, folder
+
+
+def test_training_lowers_the_flow_matching_loss(trained):
+    _, log, _ = trained
+    assert len(log["losses"]) == SMALL["steps"]
+    assert log["held_out_after"] < 0.85 * log["held_out_before"]
+
+
+def test_save_load_round_trip_gives_identical_refinement(trained):
+    prior, _, folder = trained
+    again = load_prior(folder)
+    assert isinstance(again, EmbeddedPrior) and again.params == prior.params
+    video = bubble_clip(5, frames=11)
+    a, b = prior.refine(video, 0.35, seed=2), again.refine(video, 0.35, seed=2)
+    assert a.shape == video.shape and np.array_equal(a, b)
+    assert 0.0 <= a.min() and a.max() <= 1.0
+    # SDEdit keeps the input's structure at low strength: closer to it than to another clip
+    assert np.abs(a - video).mean() < np.abs(a - bubble_clip(9, frames=11)).mean()
+
+
+def test_sample_shape_and_determinism(trained):
+    prior, _, _ = trained
+    s1, s2 = prior.sample(2, 4, 16, seed=1), prior.sample(2, 4, 16, seed=1)
+    assert s1.shape == (2, 4, 16, 16) and np.array_equal(s1, s2)
+
+
+def test_refine_pads_odd_sizes_and_short_videos(trained):
+    prior, _, _ = trained
+    video = bubble_clip(3, frames=3, size=24)[:, :23, :21]
+    out = prior.refine(video, 0.2, seed=0)
+    assert out.shape == video.shape and np.isfinite(out).all()
+
+
+def test_bad_inputs_raise_clear_errors(tmp_path):
+    prior = EmbeddedPrior(SMALL)
+    with pytest.raises(ValueError, match="frames"):
+        prior.train([bubble_clip(0, frames=2)], log=None)
+    with pytest.raises(ValueError, match="unknown parameters"):
+        EmbeddedPrior({"stepz": 3})
+    with pytest.raises(ValueError, match=r"\(T, H, W\)"):
+        prior.refine(np.zeros((4, 4)), 0.2)
+    with pytest.raises(FileNotFoundError, match="nowhere"):
+        find_clips(tmp_path / "nowhere")
+    with pytest.raises(FileNotFoundError, match="no prior"):
+        load_prior(tmp_path)
+
+
+def test_commands_train_prior_and_refine(tmp_path, capsys):
+    clips = tmp_path / "clips"
+    for k in range(2):
+        write_png_clip(clips / f"clip{k:03d}", bubble_clip(10 + k, frames=8, size=16))
+    params = dict(SMALL, steps=3, crop=16)
+    out = tmp_path / "prior"
+    assert main(["train-prior", "--clips", str(clips), "--out", str(out), "--threads", "1",
+                 "--params-json", json.dumps(params), "--samples", "2"]) == 0  # fmt: skip
+    assert {p.name for p in out.iterdir()} == {
+        "prior.json",
+        "embedded.pt",
+        "samples.png",
+        "train.json",
+    }
+    grid = cv2.imread(str(out / "samples.png"), cv2.IMREAD_GRAYSCALE)
+    assert grid.shape == (4 * 16 + 3 * 2 + 6, 4 * 16 + 3 * 2)  # 2 clips, band, 2 samples
+    log = json.loads((out / "train.json").read_text())
+    assert log["steps"] == 3 and log["backend"] == "embedded"
+
+    view = clips / "clip001"
+    for strength, name in ((0.35, "near"), (0.0, "zero")):
+        assert main(["refine", "--prior", str(out), "--video", str(view), "--strength",
+                     str(strength), "--out", str(tmp_path / f"{name}.npy"), "--seed", "4"]) == 0  # fmt: skip
+        stack = np.load(tmp_path / f"{name}.npy")
+        assert stack.shape == (8, 16, 16)
+        assert len(list((tmp_path / name).glob("*.png"))) == 8
+        np.testing.assert_allclose(read_video(tmp_path / name), stack, atol=0.5 / 255 + 1e-6)
+    np.testing.assert_array_equal(np.load(tmp_path / "zero.npy"), read_video(view))
+    assert json.loads((tmp_path / "near" / "refine.json").read_text())["strength"] == 0.35
+    rc = main(["refine", "--prior", str(out), "--video", str(view), "--strength", "1.5",
+               "--out", str(tmp_path / "bad")])  # fmt: skip
+    assert rc == 2 and "strength" in capsys.readouterr().err
+    assert not (tmp_path / "bad.npy").exists()
