@@ -16,6 +16,8 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/mask.smk"
+include: "workflow/rules/fit.smk"
+include: "workflow/rules/evaluate.smk"
 
 
 rule all:
@@ -23,4 +25,5 @@ rule all:
     default_target: True
     input:
         expand(f"{RESULTS}/calib/{{rig}}/cameras.json", rig=RIGS),
-        expand(f"{RESULTS}/{{session}}/masks", session=SESSIONS),
+        expand(f"{RESULTS}/{{session}}/fit/bubbles.csv", session=SESSIONS),
+        f"{RESULTS}/campaign/metrics.csv",
