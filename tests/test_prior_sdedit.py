@@ -14,6 +14,15 @@ from surfphase.prior.embedded import EmbeddedPrior
 TINY = {"channels": [8, 8], "frames": 4, "overlap": 1, "sample_steps": 10}
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny tensors: one thread avoids OpenMP spinning on the shared 2-core machine."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 @pytest.mark.parametrize("shift", [1.0, 3.0, 7.0])
 @pytest.mark.parametrize("n_steps", [4, 10, 30])
 def test_flow_match_sigmas_match_diffusers_scheduler(shift, n_steps):
