@@ -648,6 +648,13 @@ def run_fit(
                 "background": background,
             },
         )
+        # Progress for the job's log (one line per frame; a resumed run starts later).
+        print(
+            f"session {data.session}: frame {t + 1}/{n_frames}, {iters} steps, "
+            f"input-view PSNR {', '.join(f'{v:.1f}' for v in view_psnr)} dB, "
+            f"{rec['seconds']:.1f} s",
+            flush=True,
+        )
 
     return outputs.write_outputs(
         out_dir, records, data, p, background, extent=model.extent, device=dev
