@@ -33,7 +33,9 @@ demo-data: $(STAMP)
 
 demo: demo-data
 	$(BIN)/snakemake --cores $(CORES) --keep-going
-	@echo "Results are under results/ (see README.md)."
+	$(BIN)/snakemake --report results/report.html
+	@echo "Report: results/report.html; campaign page: results/campaign/index.html;"
+	@echo "metrics: results/campaign/metrics.csv (see README.md for every output)."
 
 clean-demo:
 	rm -rf demo results logs benchmarks .snakemake

@@ -18,6 +18,7 @@ include: "workflow/rules/ingest.smk"
 include: "workflow/rules/mask.smk"
 include: "workflow/rules/fit.smk"
 include: "workflow/rules/evaluate.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:
@@ -27,3 +28,4 @@ rule all:
         expand(f"{RESULTS}/calib/{{rig}}/cameras.json", rig=RIGS),
         expand(f"{RESULTS}/{{session}}/fit/bubbles.csv", session=SESSIONS),
         f"{RESULTS}/campaign/metrics.csv",
+        f"{RESULTS}/campaign/index.html",

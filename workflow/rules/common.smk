@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+import surfphase
 from snakemake.exceptions import WorkflowError
 from snakemake.utils import min_version, validate
 
@@ -26,7 +27,7 @@ validate(config, schema="../schemas/config.schema.yaml")
 
 RESULTS = config["results"].rstrip("/")
 SURFPHASE = config.get("surfphase_command") or f"{shlex.quote(sys.executable)} -m surfphase"
-PACKAGE_DIR = Path(workflow.basedir).parent / "surfphase"
+PACKAGE_DIR = Path(surfphase.__file__).parent  # the package the jobs run
 
 
 def read_sheet(path, key, schema, numeric=()):
@@ -132,10 +133,12 @@ def code_version(*packages):
     for pkg in packages:
         p = PACKAGE_DIR / pkg
         files += sorted(p.rglob("*.py")) if p.is_dir() else [p.with_suffix(".py")]
-    for f in files:
-        if f.is_file():
-            h.update(f.name.encode())
-            h.update(f.read_bytes())
+    found = [f for f in files if f.is_file()]
+    if len(found) < 4:
+        raise WorkflowError(f"code_version{packages}: sources not found under {PACKAGE_DIR}")
+    for f in found:
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
     return h.hexdigest()[:16]
 
 

@@ -23,7 +23,7 @@ rule ingest:
             if config["ingest"].get("crop")
             else ""
         ),
-        code=code_version("ingest", "video", "commands/ingest"),
+        code=code_version("ingest", "video", "labformats", "commands/ingest"),
     log:
         "logs/ingest/{session}.log",
     benchmark:

@@ -1,0 +1,1 @@
+"""The report stage: per-session figures and the campaign page (matplotlib, pandas)."""

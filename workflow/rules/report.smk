@@ -1,0 +1,78 @@
+report: "../report/workflow.rst"
+
+
+rule plots:
+    """Per session: velocity over time per bubble (method, baseline, truth), metrics, masks."""
+    input:
+        fit=f"{RESULTS}/{{session}}/fit/bubbles.csv",
+        metrics=f"{RESULTS}/{{session}}/evaluate/metrics.json",
+        baseline=f"{RESULTS}/{{session}}/evaluate/baseline_bubbles.csv",
+        masks=f"{RESULTS}/{{session}}/masks",
+        # the truth's bubbles.csv, when the session has a ground-truth folder
+        gt=lambda wc: existing(
+            [
+                resolve(sessions, g and f"{g}/bubbles.csv")
+                for g in [sessions.loc[wc.session].get("gt", "")]
+            ]
+        ),
+    output:
+        velocity=report(
+            f"{RESULTS}/{{session}}/report/velocity.png",
+            caption="../report/velocity.rst",
+            category="Sessions",
+            subcategory="{session}",
+        ),
+        metrics=report(
+            f"{RESULTS}/{{session}}/report/metrics.html",
+            caption="../report/metrics.rst",
+            category="Sessions",
+            subcategory="{session}",
+        ),
+        masks=report(
+            directory(f"{RESULTS}/{{session}}/report/masks"),
+            patterns=["{name}.png"],
+            caption="../report/masks.rst",
+            category="Sessions",
+            subcategory="{session}",
+        ),
+    params:
+        surfphase=SURFPHASE,
+        gt=lambda wc, input: " ".join(f"--gt {shlex.quote(p)}" for p in input.gt),
+        code=code_version("report", "commands/report"),
+    log:
+        "logs/plots/{session}.log",
+    benchmark:
+        "benchmarks/plots/{session}.tsv"
+    conda:
+        "../../envs/surfphase.yaml"
+    shell:
+        "{params.surfphase} plots --session {wildcards.session} --fit $(dirname {input.fit:q})"
+        " --evaluate $(dirname {input.metrics:q}) --masks {input.masks:q} {params.gt}"
+        " --out $(dirname {output.velocity:q}) > {log:q} 2>&1"
+
+
+rule campaign_page:
+    """One self-contained HTML page: every session's metrics and figures."""
+    input:
+        metrics=f"{RESULTS}/campaign/metrics.csv",
+        velocity=expand(f"{RESULTS}/{{session}}/report/velocity.png", session=SESSIONS),
+        masks=expand(f"{RESULTS}/{{session}}/report/masks", session=SESSIONS),
+    output:
+        report(
+            f"{RESULTS}/campaign/index.html",
+            caption="../report/campaign.rst",
+            category="Campaign",
+        ),
+    params:
+        surfphase=SURFPHASE,
+        reports=" ".join(shlex.quote(f"{s}={RESULTS}/{s}/report") for s in SESSIONS),
+        code=code_version("report", "commands/report"),
+    log:
+        "logs/campaign_page/all.log",
+    benchmark:
+        "benchmarks/campaign_page/all.tsv"
+    conda:
+        "../../envs/surfphase.yaml"
+    shell:
+        "{params.surfphase} campaign-page --metrics {input.metrics:q} --out {output:q}"
+        " --session-report {params.reports} > {log:q} 2>&1"
