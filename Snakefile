@@ -17,6 +17,7 @@ include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/mask.smk"
 include: "workflow/rules/fit.smk"
+include: "workflow/rules/mesh.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/report.smk"
 

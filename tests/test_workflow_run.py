@@ -22,7 +22,10 @@ SESSIONS = ("session01", "session02")
 # Bad-input and resume tests drive the DAG up to the frame stacks: that is where a
 # session's input is read. The full run uses a very short fit.
 INGEST_TARGETS = [f"results/{s}/ingest" for s in SESSIONS]
-SHORT_FIT = "fit:\n  iters_first: 15\n  iters_next: 4\n  n_init: 300\n  render_frames: 1\n"
+SHORT_FIT = (
+    "fit:\n  iters_first: 15\n  iters_next: 4\n  n_init: 300\n  render_frames: 1\n"
+    "mesh:\n  voxels: 32\n  n_orbit: 3\n"
+)
 
 
 @pytest.fixture(scope="module")
@@ -102,13 +105,18 @@ def test_full_run_produces_every_stage(tiny: Path, tmp_path: Path):
         assert labels.shape == stack.shape
         bubbles = pd.read_csv(work / f"results/{s}/fit/bubbles.csv")
         assert set(bubbles["frame"]) == set(range(6))
+        meshes = sorted((work / f"results/{s}/mesh").glob("*.ply"))
+        assert len(meshes) == 6
         metrics = json.loads((work / f"results/{s}/evaluate/metrics.json").read_text())
         assert metrics["velocity"]["method"]["matched"] > 0
-        for rule in ("ingest", "mask", "fit", "evaluate"):
+        assert metrics["chamfer_mm"]
+        assert (work / f"results/{s}/report/velocity.png").exists()
+        for rule in ("ingest", "mask", "fit", "mesh", "evaluate", "plots"):
             assert (work / f"logs/{rule}/{s}.log").exists()
             assert (work / f"benchmarks/{rule}/{s}.tsv").exists()
     table = pd.read_csv(work / "results/campaign/metrics.csv")
     assert len(table) == len(SESSIONS)
+    assert "session01" in (work / "results/campaign/index.html").read_text()
 
 
 @pytest.mark.parametrize("problem", ["missing_video", "unknown_rig", "frame_counts"])

@@ -155,6 +155,7 @@ def evaluate_inputs(wc):
         "ingest": f"{RESULTS}/{wc.session}/ingest",
         "masks": f"{RESULTS}/{wc.session}/masks",
         "fit": f"{RESULTS}/{wc.session}/fit/surfels.npz",
+        "meshes": f"{RESULTS}/{wc.session}/mesh",
     }
     gt = resolve(sessions, sessions.loc[wc.session].get("gt", ""))
     if gt and os.path.isdir(gt):

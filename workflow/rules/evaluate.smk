@@ -11,6 +11,7 @@ rule evaluate:
         gt=lambda wc, input: f"--gt {shlex.quote(input.gt)}" if "gt" in input.keys() else "",
         device=config["device"],
         code=code_version("eval", "render", "fit", "commands/evaluate"),
+
     log:
         "logs/evaluate/{session}.log",
     benchmark:
@@ -20,6 +21,7 @@ rule evaluate:
     shell:
         "{params.surfphase} evaluate --session {wildcards.session} --ingest {input.ingest:q}"
         " --masks {input.masks:q} --fit $(dirname {input.fit:q}) {params.gt}"
+        " --meshes {input.meshes:q}"
         " --device {params.device} --out $(dirname {output.metrics:q}) > {log:q} 2>&1"
 
 
