@@ -378,9 +378,26 @@ def _load_checkpoint(ckpt: Path, key: str) -> tuple[dict | None, list[dict]]:
     return state, records
 
 
+def _code_fingerprint() -> str:
+    """Hash of the sources the fit's results depend on (fit and renderer packages)."""
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for pkg in ("fit", "render"):
+        for f in sorted((root / pkg).rglob("*.py")):
+            h.update(f.name.encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def _run_key(data: SessionData, p: dict) -> str:
+    """What a checkpoint must match to be resumed: parameters, inputs and code.
+
+    A change of the fit's code makes old checkpoints stale, so a rerun triggered by the
+    code change refits from the first frame instead of resuming.
+    """
     h = hashlib.sha256(json.dumps(p, sort_keys=True, default=str).encode())
     h.update(data.fingerprint().encode())
+    h.update(_code_fingerprint().encode())
     return h.hexdigest()
 
 
