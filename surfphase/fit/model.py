@@ -23,6 +23,8 @@ import math
 
 import torch
 
+from surfphase.render.projection import quat_to_rotmat
+
 #: ``−ln(3 − 2√2)``: the value of ``γ|f|`` at which ``o(γ f) = 1/2``.
 HALF_OPACITY_GF = -math.log(3.0 - 2.0 * math.sqrt(2.0))
 
@@ -41,26 +43,6 @@ def sdf_to_opacity(sdf: torch.Tensor, gamma: torch.Tensor | float) -> torch.Tens
     # 4 e^{-x}/(1+e^{-x})^2 = 4 σ(x) σ(-x): symmetric in x, and stable for large |x|.
     x = gamma * sdf
     return 4.0 * torch.sigmoid(x) * torch.sigmoid(-x)
-
-
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    """(N, 4) quaternions (w, x, y, z; any norm) → (N, 3, 3) rotation matrices."""
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    ).reshape(q.shape[:-1] + (3, 3))
 
 
 def surfel_normals(quats: torch.Tensor) -> torch.Tensor:

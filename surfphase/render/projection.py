@@ -32,7 +32,7 @@ DEFAULT_LOW_PASS = math.sqrt(0.5)
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """(N, 4) quaternions ``(w, x, y, z)``, any norm → (N, 3, 3) rotation matrices."""
-    q = quats / quats.norm(dim=-1, keepdim=True)
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         [
