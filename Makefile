@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 CORES ?= 2
 
-.PHONY: install test test-all lint demo demo-data clean-demo
+.PHONY: install test lint demo demo-data clean-demo
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,9 +24,6 @@ lint: $(STAMP)
 
 test: $(STAMP) lint
 	$(BIN)/python -m pytest -q
-
-test-all: $(STAMP)
-	$(BIN)/python -m pytest -q --runslow
 
 demo-data: $(STAMP)
 	$(BIN)/surfphase synth --preset demo --out demo
