@@ -9,7 +9,6 @@ from __future__ import annotations
 import base64
 import json
 import re
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -221,14 +220,3 @@ def test_commands(tables, tmp_path, capsys):
     assert main(["plots", "--session", "s1", "--fit", str(tmp_path / "fit"), "--evaluate",
                  str(tmp_path / "evaluate"), "--out", str(rep)]) == 2  # fmt: skip
     assert "metrics.json: session s1" in capsys.readouterr().err
-
-
-def test_plots_on_demo_results(tmp_path):
-    """The finished demo run's outputs, when present, give one plot per session."""
-    root = Path(__file__).resolve().parents[1]
-    fit = root / "results" / "session01" / "fit" / "bubbles.csv"
-    gt = root / "demo" / "session01" / "gt" / "bubbles.csv"
-    if not (fit.exists() and gt.exists()):
-        pytest.skip("no demo results on disk")
-    shown = velocity_plots(fit, None, gt, 1500.0, tmp_path / "v.png", "session01")
-    assert shown and any("truth" in s for s in shown.values())

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -221,40 +222,27 @@ def _rms(r: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(np.asarray(r) ** 2, axis=-1)))) if len(r) else 0.0
 
 
-def calibrate_rig_detailed(
-    board_yaml: Path | BoardSpec,
-    image_dirs: dict[str, Path],
-    min_images: int = 6,
-    rig: str | None = None,
-    min_corners: int = 4,
-    max_view_rms: float = 1.0,
-    fix_k3: bool = True,
-    max_refits: int = 8,
-) -> Calibration:
-    """Calibrate all cameras of a rig from synchronized ChArUco images.
+def _single_opencv_thread(fn):
+    """Run ``fn`` with OpenCV on one thread.
 
-    See :func:`_calibrate_rig_detailed` for the arguments. OpenCV's solvers run on one
-    thread here: its thread pool changes the last digits of the result from run to run,
-    and the same inputs must give the same cameras.
+    OpenCV's thread pool changes the last digits of a calibration from run to run, and
+    the same inputs must give the same cameras.
     """
-    threads = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        return _calibrate_rig_detailed(
-            board_yaml,
-            image_dirs,
-            min_images=min_images,
-            rig=rig,
-            min_corners=min_corners,
-            max_view_rms=max_view_rms,
-            fix_k3=fix_k3,
-            max_refits=max_refits,
-        )
-    finally:
-        cv2.setNumThreads(threads)
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            cv2.setNumThreads(threads)
+
+    return wrapper
 
 
-def _calibrate_rig_detailed(
+@_single_opencv_thread
+def calibrate_rig_detailed(
     board_yaml: Path | BoardSpec,
     image_dirs: dict[str, Path],
     min_images: int = 6,

@@ -99,17 +99,17 @@ def read_session(ingest_dir: Path, masks_dir: Path) -> dict:
     }
 
 
-def read_table(path: Path, columns: Sequence[str], session: str) -> pd.DataFrame:
-    """A CSV with at least ``columns``; clear errors naming file and session."""
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: session {session}: not found")
+def read_table(path: Path, columns: Sequence[str], what: str) -> pd.DataFrame:
+    """A CSV with at least ``columns``; errors name the file and ``what`` it is for."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: {what}: not found")
     try:
         df = pd.read_csv(path)
     except (ValueError, pd.errors.ParserError) as e:
-        raise ValueError(f"{path}: session {session}: not a readable CSV ({e})") from e
+        raise ValueError(f"{path}: {what}: not a readable CSV ({e})") from e
     missing = [c for c in columns if c not in df.columns]
     if missing:
-        raise ValueError(f"{path}: session {session}: missing columns {missing}")
+        raise ValueError(f"{path}: {what}: missing columns {missing}")
     return df
 
 
@@ -250,7 +250,7 @@ def run_evaluate(
     data = read_session(ingest_dir, masks_dir)
     name = session or data["session"]
     fit_cols = ["frame", "bubble", "x", "y", "z", "vx", "vy", "vz"]
-    method = read_table(fit_dir / "bubbles.csv", fit_cols, name)
+    method = read_table(fit_dir / "bubbles.csv", fit_cols, f"session {name}")
     base = bl.baseline_bubbles(data["cameras"], data["labels"], data["frames"], data["fps"])
     keep = (lambda df: df) if include_nucleation else (lambda df: df[df["bubble"] >= 1])
     metrics: dict = {
@@ -271,7 +271,7 @@ def run_evaluate(
     truth_by_mask_id = None
     if gt_dir is not None:
         gt_dir = Path(gt_dir)
-        truth = read_table(gt_dir / "bubbles.csv", fit_cols, name)
+        truth = read_table(gt_dir / "bubbles.csv", fit_cols, f"session {name}")
         metrics["velocity"] = {}
         for label, pred in (("method", method), ("baseline", base_cmp)):
             m = velocity.match_bubbles(keep(pred), truth, max_match_dist)

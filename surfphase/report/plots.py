@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from surfphase.eval.stage import read_table
 from surfphase.io import atomic_path, atomic_write_text
 
 FIT_COLUMNS = ("frame", "bubble", "x", "y", "z", "vx", "vy", "vz")
@@ -50,17 +51,7 @@ SUMMARY_COLUMNS = {
 
 def read_bubbles(path: str | os.PathLike, what: str) -> pd.DataFrame:
     """A bubble table (``frame, bubble, x, y, z, vx, vy, vz``, m and m/s) from a CSV."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: {what} not found")
-    try:
-        df = pd.read_csv(path)
-    except (ValueError, pd.errors.ParserError) as e:
-        raise ValueError(f"{path}: {what} is not a readable CSV ({e})") from e
-    missing = [c for c in FIT_COLUMNS if c not in df.columns]
-    if missing:
-        raise ValueError(f"{path}: {what} lacks columns {missing}")
-    return df
+    return read_table(Path(path), FIT_COLUMNS, what)
 
 
 def pair_truth(
