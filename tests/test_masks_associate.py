@@ -3,10 +3,18 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 from test_masks_scene import rig, rising, write_ingest
 
-from surfphase.masks.associate import associate, fundamental_matrix, symmetric_epipolar_distance
+from surfphase.masks.associate import (
+    ASSOCIATE_DEFAULTS,
+    Tracks,
+    associate,
+    fundamental_matrix,
+    reconcile_merges,
+    symmetric_epipolar_distance,
+)
 from surfphase.masks.classical import segment_frame
 
 
@@ -137,3 +145,145 @@ def test_plate_image_marks_the_nucleation_region_without_cameras(tmp_path):
     for c in truth:
         assert set(_ids(truth[c], out[c], 0)) == {0}
         assert 0 not in _ids(truth[c], out[c], 1) + _ids(truth[c], out[c], 2)
+
+
+def _disk(h, w, cy, cx, r):
+    yy, xx = np.mgrid[0:h, 0:w]
+    return (yy - cy) ** 2 + (xx - cx) ** 2 <= r * r
+
+
+def _merging_pair(fuse: dict[str, int], lobes_from: int, n: int = 10, size: int = 64):
+    """Label stacks of two blobs that merge, drawn by hand (no segmenter).
+
+    Blob A rises slowly, blob B (below it) faster, until they touch: from frame
+    ``lobes_from`` the two are one bubble, drawn as two overlapping disks; a view
+    shows it as one instance from frame ``fuse[view]`` on and, before that, as the
+    two lobes cut apart along the row between them (touching instances), as a
+    segmenter that splits touching bubbles does. Before ``lobes_from`` the blobs are
+    apart (a gap of at least 2 px). The views differ only in columns, so without
+    cameras they pair by image rows. Returns ``{view: (n, size, size) int32}``.
+    """
+    out = {}
+    for view, x_off in (("cam0", 0), ("cam1", 6)):
+        lab = np.full((n, size, size), -1, np.int32)
+        for t in range(n):
+            ya = 30.0 - t
+            if t < lobes_from:
+                gap = 2 * (lobes_from - t) + 1  # px between the silhouettes
+                a = _disk(size, size, ya, 28 + x_off, 5)
+                b = _disk(size, size, ya + 10 + gap, 30 + x_off, 5)
+                lab[t][a], lab[t][b] = 0, 1
+                continue
+            # The merged bubble: two overlapping lobes drawing together, then one disk.
+            k = t - lobes_from
+            d = max(8.0 - 3 * k, 0.0)
+            union = _disk(size, size, ya, 28 + x_off, 5) | _disk(size, size, ya + d, 30 + x_off, 5)
+            if t >= fuse[view]:
+                lab[t][union] = 0
+            else:
+                cut = int(round(ya + d / 2))
+                rows = np.arange(size)[:, None]
+                lab[t][union & (rows <= cut)] = 0
+                lab[t][union & (rows > cut)] = 1
+        out[view] = lab
+    return out
+
+
+def _no_plate(labels):
+    """No heated plate in view: no instance is the nucleation region."""
+    return {c: np.zeros(lab.shape[1:], bool) for c, lab in labels.items()}
+
+
+def _blob_ids(lab: np.ndarray) -> list[set[int]]:
+    """The set of ids on the foreground of each frame."""
+    return [set(np.unique(f[f >= 0]).tolist()) for f in lab]
+
+
+@pytest.mark.parametrize(
+    ("fuse", "lobes_from", "merge_frame"),
+    [
+        # Fused at frame 4 in both views; apart at frame 3.
+        ({"cam0": 4, "cam1": 4}, 4, 4),
+        # Fused at 4 in view 0 but one frame later in view 1: merged at 4 in both.
+        ({"cam0": 4, "cam1": 5}, 4, 4),
+        # The same, the other way round.
+        ({"cam0": 5, "cam1": 4}, 4, 4),
+        # Merged at 3, seen as touching lobes there in both views, fused at 4 and 5.
+        ({"cam0": 4, "cam1": 5}, 3, 3),
+    ],
+)
+def test_merge_switches_id_at_the_same_frame_in_both_views(fuse, lobes_from, merge_frame):
+    labels = _merging_pair(fuse, lobes_from)
+    scores = {c: [np.ones(int(f.max()) + 1) for f in lab] for c, lab in labels.items()}
+    out, _, events = associate(labels, scores, None, plates=_no_plate(labels))
+    ids = {c: _blob_ids(out[c]) for c in out}
+    before = ids["cam0"][0]
+    assert len(before) == 2 and 0 not in before
+    merged = ids["cam0"][-1]
+    assert len(merged) == 1 and not merged & before
+    for c in out:
+        # Both parents up to the frame before the merge, the merged id from it on,
+        # the lobes of a young merged bubble included.
+        assert all(ids[c][t] == before for t in range(merge_frame)), (c, ids[c])
+        assert all(ids[c][t] == merged for t in range(merge_frame, 10)), (c, ids[c])
+    merges = events[events.event == "merge"]
+    assert sorted(merges.camera) == ["cam0", "cam1"]
+    assert set(merges.frame) == {merge_frame}
+    (m,) = merged
+    for r in merges.itertuples():
+        assert r.children == str(m)
+        assert set(map(int, r.parents.split("+"))) == before
+
+
+def test_fusion_in_one_view_that_the_other_view_refutes_is_no_merge():
+    """View 0 sees bubble B pass behind bubble A for good; view 1 sees both apart."""
+    n, size = 10, 64
+    labels = {}
+    for view, xb in (("cam0", 30), ("cam1", 46)):
+        lab = np.full((n, size, size), -1, np.int32)
+        for t in range(n):
+            a = _disk(size, size, 20, 30, 7)
+            b = _disk(size, size, 36 - 2 * min(t, 6), xb, 4)
+            if view == "cam0" and t >= 5:
+                lab[t][a | b] = 0  # B hidden behind A: one silhouette
+            else:
+                lab[t][a] = 0
+                lab[t][b & ~a] = 1
+        labels[view] = lab
+    scores = {c: [np.ones(int(f.max()) + 1) for f in lab] for c, lab in labels.items()}
+    out, _, events = associate(labels, scores, None, plates=_no_plate(labels))
+    a_ids = {c: {int(out[c][t][20, 30]) for t in range(n)} for c in out}
+    assert a_ids["cam0"] == a_ids["cam1"] and len(a_ids["cam0"]) == 1  # A keeps its id
+    (a_id,) = a_ids["cam0"]
+    b_ids = {int(out["cam1"][t][36 - 2 * min(t, 6), 46]) for t in range(n)}
+    assert len(b_ids) == 1 and a_id not in b_ids
+    assert (events.event == "merge").sum() == 0
+
+
+def test_a_merge_missed_by_one_view_is_made_there_at_the_same_frame():
+    """View 1's tracker let the fused blob carry on as bubble A and just lost B."""
+    labels = _merging_pair({"cam0": 4, "cam1": 4}, 4)
+    n = labels["cam0"].shape[0]
+    # View 0: A (track 0) and B (track 1) merge into track 2 at frame 4.
+    t0 = Tracks(n=3, continues={2: 0})
+    t1 = Tracks(n=2)  # view 1: A (track 0) goes on through the fusion, B (1) stops
+    for t in range(n):
+        if t < 4:
+            t0.track_of[(t, 0)], t0.track_of[(t, 1)] = 0, 1
+            t1.track_of[(t, 0)], t1.track_of[(t, 1)] = 0, 1
+        else:
+            t0.track_of[(t, 0)] = 2
+            t1.track_of[(t, 0)] = 0
+    t0.events.append((4, "merge", [1, 0], [2]))
+    rows = [(t, 0, 0, 0.0) for t in range(n)] + [(t, 1, 1, 0.0) for t in range(4)]
+    pairs = pd.DataFrame(rows, columns=["frame", "local_a", "local_b", "cost"])
+    out = reconcile_merges(
+        {"cam0": t0, "cam1": t1}, labels, pairs, "cam0", "cam1", ASSOCIATE_DEFAULTS
+    )
+    after = {out["cam1"].track_of[(t, 0)] for t in range(4, n)}
+    assert len(after) == 1 and not after & {0, 1}  # a new track from frame 4 on
+    assert {out["cam1"].track_of[(t, 0)] for t in range(4)} == {0}
+    (m1,) = after
+    assert [e for e in out["cam1"].events if e[1] == "merge"] == [(4, "merge", [0, 1], [m1])]
+    assert [e for e in out["cam0"].events if e[1] == "merge"] == [(4, "merge", [0, 1], [2])]
+    assert t1.track_of[(5, 0)] == 0 and t1.events == []  # the inputs are left alone

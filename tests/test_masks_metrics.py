@@ -41,6 +41,30 @@ def test_swaps_and_switches_are_counted():
     assert m["temporal_identity_frames"] == pytest.approx(13 / 16)
 
 
+def test_per_bubble_life_and_an_id_inherited_by_a_merged_bubble():
+    """Truth: bubbles 1 and 2 merge into 3 at frame 3 (of 6)."""
+    gt = {c: _stack(6) for c in ("cam0", "cam1")}
+    for c in gt:
+        gt[c][:3, 2:8, 2:8] = 1
+        gt[c][:3, 10:16, 2:8] = 2
+        gt[c][3:, 4:14, 2:8] = 3
+    # cam0: the merged bubble keeps bubble 1's id; cam1: it gets its own id a frame late.
+    pred = {c: np.where(g >= 0, g + 10, -1) for c, g in gt.items()}
+    pred["cam0"][3:][gt["cam0"][3:] == 3] = 11
+    pred["cam1"][3][gt["cam1"][3] == 3] = 11
+    m = mask_metrics(gt, pred)
+    per = {
+        (b["camera"], b["truth"]): (b["id"], b["kept"], b["frames"])
+        for b in m["temporal_identity_per_bubble"]
+    }
+    assert per[("cam0", 3)] == (11, 3, 3) and per[("cam1", 3)] == (13, 2, 3)
+    assert per[("cam0", 1)] == (11, 3, 3)
+    assert m["temporal_identity_min"] == pytest.approx(2 / 3)
+    assert m["temporal_identity_mean"] == pytest.approx((5 + 2 / 3) / 6)
+    assert m["temporal_identity_ok_frac"] == pytest.approx(5 / 6)
+    assert m["shared_ids"] == 1  # id 11 is the id of truth 1 and truth 3 in cam0
+
+
 def test_nucleation_region_groups_attached_bubbles():
     gt = np.full((20, 20), -1, np.int32)
     gt[15:19, 2:6] = 3

@@ -156,6 +156,16 @@ def _bench(args: argparse.Namespace) -> int:
         f"bubble-frames (per bubble: mean {acc['temporal_identity_mean']:.3f}, min "
         f"{acc['temporal_identity_min']:.3f}, {acc['tracked_bubbles']} bubble-views)"
     )
+    low = [b for b in acc["temporal_identity_per_bubble"] if b["kept"] < 0.95 * b["frames"]]
+    print(
+        f"  bubbles at >= 95 % of their life : {acc['temporal_identity_ok_frac']:.3f} of "
+        f"bubble-views; below: "
+        + (
+            ", ".join(f"{b['camera']} truth {b['truth']} {b['kept']}/{b['frames']}" for b in low)
+            or "none"
+        )
+    )
+    print(f"  ids shared by two truth bubbles  : {acc['shared_ids']}")
     if not args.skip_timing:
         results["timing"] = {}
         for scale, size in ((0.25, 128), (1.0, 512)):

@@ -20,7 +20,13 @@ Instances come from a segmentation backend as per-camera label stacks
    back when it reappears; one that never does has *merged* into the track that
    covered it, which carries on. A new track born inside a track's previous mask is
    a *split*; one born on the nucleation region is a *detach*. Events are recorded.
-4. **Tracks into bubbles.** Two tracks of different views are linked when they
+4. **Merges, one decision for both views.** A merge is an event of the 3D bubbles:
+   the merges seen by each view are matched across the views and given one frame,
+   a merge one view missed is made there too, one the other view refutes (it still
+   sees the bubbles apart) is undone as an occlusion, and a merge is dated back over
+   the frame(s) where the young merged bubble still shows as two touching lobes
+   (:func:`reconcile_merges`). The merged bubble gets its own id in both views.
+5. **Tracks into bubbles.** Two tracks of different views are linked when they
    were paired in enough of their common frames; links are made strongest first,
    never joining two tracks of one view that coexist in time. Each linked group is
    one bubble; ids 1, 2, … in order of first appearance.
@@ -55,6 +61,11 @@ ASSOCIATE_DEFAULTS: dict = {
     "event_overlap_frac": 0.25,
     # Cross-view link: paired in at least this fraction of the common frames.
     "link_frac": 0.3,
+    # A merge is dated back over up to this many frames in which the parents touch in
+    # every view: a young merged bubble is two lobes the segmenter may still cut apart
+    # (about the coalescence time, ~1–2 ms, times the frame rate, minus what the
+    # segmenter already fuses; 1 at 1500 fps for the classical backend).
+    "merge_lobe_frames": 1,
 }
 
 INSTANCE_COLUMNS = [
@@ -189,6 +200,9 @@ class Tracks:
     track_of: dict[tuple[int, int], int] = field(default_factory=dict)
     events: list[tuple[int, str, list[int], list[int]]] = field(default_factory=list)
     n: int = 0
+    #: Merged track → the track whose instance it continues (the one that covered
+    #: the hidden tracks), so a merge the other view refutes can be undone.
+    continues: dict[int, int] = field(default_factory=dict)
 
     def new(self) -> int:
         self.n += 1
@@ -312,32 +326,42 @@ def track_view(
         for k in list(hidden_by):
             if k in by_track:
                 del hidden_by[k]  # it came back: an occlusion, not a merge
-            elif t - hidden_by[k][0] >= coast or t == labels.shape[0] - 1:
-                # Hidden for good (or still hidden when the video ends).
-                f, other = hidden_by.pop(k)
-                # A merge: from frame f on, the surviving instance is a new bubble.
-                merged = tr.new()
-                for key, tid in tr.track_of.items():
-                    if tid == other and key[0] >= f:
-                        tr.track_of[key] = merged
-                for loc, tid in assigned.items():
-                    if tid == other:
-                        assigned[loc] = merged
-                if other in last:
-                    last[merged] = last.pop(other)
-                for kk, (ff, oo) in hidden_by.items():
-                    if oo == other and ff >= f:
-                        hidden_by[kk] = (ff, merged)
-                tr.events = [
-                    (
-                        ef,
-                        kind,
-                        [merged if (q == other and ef >= f) else q for q in par],
-                        [merged if (q == other and ef >= f) else q for q in kids],
-                    )
-                    for ef, kind, par, kids in tr.events
-                ]
-                tr.events.append((f, "merge", [k, other], [merged]))
+        while True:
+            # Hidden for good (or still hidden when the video ends), earliest first.
+            due = [
+                k for k, (ff, _) in hidden_by.items() if t - ff >= coast or t == labels.shape[0] - 1
+            ]
+            if not due:
+                break
+            k = min(due, key=lambda q: (hidden_by[q][0], q))
+            f, other = hidden_by.pop(k)
+            # A merge: from frame f on, the surviving instance is a new bubble.
+            merged = tr.new()
+            tr.continues[merged] = other
+            for key, tid in tr.track_of.items():
+                if tid == other and key[0] >= f:
+                    tr.track_of[key] = merged
+            for loc, tid in assigned.items():
+                if tid == other:
+                    assigned[loc] = merged
+            if other in last:
+                last[merged] = last.pop(other)
+            for kk, (ff, oo) in list(hidden_by.items()):
+                if oo == other and ff >= f:
+                    hidden_by[kk] = (ff, merged)
+            # The merged blob may itself have hidden later behind another track.
+            if other in hidden_by and hidden_by[other][0] >= f:
+                hidden_by[merged] = hidden_by.pop(other)
+            tr.events = [
+                (
+                    ef,
+                    kind,
+                    [merged if (q == other and ef >= f) else q for q in par],
+                    [merged if (q == other and ef >= f) else q for q in kids],
+                )
+                for ef, kind, par, kids in tr.events
+            ]
+            tr.events.append((f, "merge", [k, other], [merged]))
         for loc, tid in assigned.items():
             tr.track_of[(t, loc)] = tid
             ys, xs = np.nonzero(cur == loc)
@@ -347,6 +371,203 @@ def track_view(
                 vel = (c - last[tid][3]) / (t - last[tid][0])
             last[tid] = (t, ys, xs, c, vel)
     tr.events.sort(key=lambda e: e[0])
+    return tr
+
+
+def _track_frames(tr: Tracks) -> dict[int, set[int]]:
+    """Frames in which each track of one view has an instance."""
+    out: dict[int, set[int]] = {}
+    for (t, _loc), k in tr.track_of.items():
+        out.setdefault(k, set()).add(t)
+    return out
+
+
+def _merge_groups(tr: Tracks, frames: Mapping[int, set[int]]) -> dict[int, tuple[int, set[int]]]:
+    """Merges of one view by merged track: ``{child: (frame, parent tracks)}``.
+
+    A blob that swallowed several tracks in one frame is recorded by
+    :func:`track_view` as a chain of merges through intermediate tracks left with
+    no frame; they are one merge here, of the parents that have frames.
+    """
+    groups: dict[int, tuple[int, set[int]]] = {}
+    for f, kind, par, kids in tr.events:
+        if kind != "merge":
+            continue
+        for m in kids:
+            if m in frames:
+                f0, ps = groups.get(m, (f, set()))
+                groups[m] = (min(f0, f), ps | set(par))
+    return {
+        m: (f, {q for q in ps if q in frames and q != m})
+        for m, (f, ps) in groups.items()
+        if any(q in frames and q != m for q in ps)
+    }
+
+
+def _connected(lab: np.ndarray, locals_: Sequence[int]) -> bool:
+    """Whether instances ``locals_`` of one frame lie in one connected foreground region."""
+    if len(locals_) <= 1:
+        return True
+    comp, _ = ndi.label(lab >= 0)
+    ids = {int(comp[lab == loc].flat[0]) for loc in locals_}
+    return len(ids) == 1
+
+
+def _relabel(tr: Tracks, tracks_: set[int], child: int, start: int) -> None:
+    """From frame ``start`` on, instances and events of ``tracks_`` belong to ``child``."""
+    for key, k in tr.track_of.items():
+        if key[0] >= start and k in tracks_:
+            tr.track_of[key] = child
+    tr.events = [
+        (
+            ef,
+            kind,
+            [child if (q in tracks_ and ef >= start) else q for q in par],
+            [child if (q in tracks_ and ef >= start) else q for q in kids],
+        )
+        for ef, kind, par, kids in tr.events
+    ]
+    # A split or merge inside the relabelled tracks (a lobe cut off) is no event.
+    tr.events = [e for e in tr.events if set(e[3]) - set(e[2])]
+
+
+def reconcile_merges(
+    tracks: Mapping[str, Tracks],
+    labels: Mapping[str, np.ndarray],
+    pairs: pd.DataFrame,
+    cam_a: str,
+    cam_b: str,
+    params: Mapping,
+) -> dict[str, Tracks]:
+    """Make each merge one decision for both views, dated at the same frame.
+
+    Per-view tracking sees a merge when one blob has swallowed two tracks; the two
+    views see it at different frames (a young merged bubble is two touching lobes
+    that the segmenter may still cut apart in one view), or one view misses it (the
+    vanished track's prediction fell beside the blob). A merge is an event of the
+    3D bubbles, so, taking the merges of both views in order of frame:
+
+    * the same merge in the other view (a merge there whose merged track is paired
+      with this one's, or whose parents are paired with two of this one's, within
+      ``coast_frames``) is combined with it, at the first frame from which the
+      parents touch (one connected foreground region) in both views, between the
+      earlier and the later fusion;
+    * a merge missed by the other view — the parents are paired there with two
+      or more tracks, the merged blob with one of them that carries on while the
+      others stop by the next frame — is made there too: that track is cut at the
+      merge frame and its continuation is a new track;
+    * a merge refuted by the other view — a parent's partner there is still seen
+      apart two frames after it — is an occlusion in this view: it is undone, the
+      blob keeps the id of the track it continues;
+    * the merge is then dated back over up to ``merge_lobe_frames`` frames in which
+      the parents' silhouettes touch in every view and are cut apart in at least
+      one: the two lobes of a bubble that already merged.
+
+    From the merge frame on, the parents' instances belong to the merged track in
+    both views, so the merged bubble never shares an id with a parent.
+
+    Args:
+        tracks: ``{camera: Tracks}`` of :func:`track_view` for ``cam_a`` and ``cam_b``.
+        labels: ``{camera: (T, H, W) int}`` instance labels (−1 background).
+        pairs: :func:`pair_views` table of ``cam_a`` and ``cam_b``.
+        params: :data:`ASSOCIATE_DEFAULTS` keys ``coast_frames``, ``merge_lobe_frames``.
+
+    Returns:
+        New ``{camera: Tracks}`` for the two views (the inputs are not modified).
+    """
+    tr = {
+        c: Tracks(
+            dict(tracks[c].track_of), list(tracks[c].events), tracks[c].n, dict(tracks[c].continues)
+        )
+        for c in (cam_a, cam_b)
+    }
+    other_view = {cam_a: cam_b, cam_b: cam_a}
+    coast = int(params["coast_frames"])
+    lobe = int(params["merge_lobe_frames"])
+    pair_rows = list(pairs[["frame", "local_a", "local_b"]].itertuples(index=False))
+    done: set[tuple[str, int]] = set()
+    for _ in range(sum(len(t.events) for t in tr.values()) + 1):
+        frames = {c: _track_frames(tr[c]) for c in tr}
+        groups = {c: _merge_groups(tr[c], frames[c]) for c in tr}
+        todo = [(f, c, m, ps) for c in tr for m, (f, ps) in groups[c].items() if (c, m) not in done]
+        if not todo:
+            break
+        f_v, v, m, par_v = min(todo, key=lambda x: (x[0], x[1] != cam_a, x[2]))
+        done.add((v, m))
+        w = other_view[v]
+        votes: dict[tuple[str, int], dict[int, int]] = {}
+        for t, la, lb in pair_rows:
+            ka = tr[cam_a].track_of.get((int(t), int(la)))
+            kb = tr[cam_b].track_of.get((int(t), int(lb)))
+            if ka is None or kb is None:
+                continue
+            va, vb = votes.setdefault((cam_a, ka), {}), votes.setdefault((cam_b, kb), {})
+            va[kb] = va.get(kb, 0) + 1
+            vb[ka] = vb.get(ka, 0) + 1
+
+        def partner(c: str, k: int, votes=votes) -> int | None:
+            vs = votes.get((c, k))
+            return None if not vs else max(sorted(vs), key=vs.get)
+
+        par_w = {q for q in (partner(v, p) for p in par_v) if q is not None}
+        pm = partner(v, m)
+        same = [
+            (abs(f2 - f_v), m2)
+            for m2, (f2, ps2) in groups[w].items()
+            if (w, m2) not in done
+            and abs(f2 - f_v) <= coast
+            and (m2 == pm or len(ps2 & par_w) >= 2)
+        ]
+        parents: dict[str, set[int]] = {v: set(par_v)}
+        child = {v: m}
+        f, f_last = f_v, f_v
+        if same:
+            m2 = min(same)[1]
+            done.add((w, m2))
+            f2, ps2 = groups[w][m2]
+            parents[w], child[w] = set(ps2), m2
+            f, f_last = min(f_v, f2), max(f_v, f2)
+        elif pm is not None and pm in par_w and len(par_w) >= 2:
+            rest = par_w - {pm}
+            if max(max(frames[w][q]) for q in rest) > f_v + 1:
+                # The other view still sees the bubbles apart: an occlusion here.
+                root = tr[v].continues.get(m)
+                while root is not None and root not in frames[v]:
+                    root = tr[v].continues.get(root)
+                if root is not None:
+                    tr[v].events = [e for e in tr[v].events if not (e[1] == "merge" and m in e[3])]
+                    _relabel(tr[v], {m}, root, 0)
+                continue
+            m2 = tr[w].new()
+            done.add((w, m2))
+            parents[w], child[w] = {pm} | rest, m2
+
+        def joined(g: int, parents=parents, child=child) -> tuple[bool, int]:
+            """Whether the bubbles touch in every view at frame g; most instances."""
+            most = 0
+            for c, ps in parents.items():
+                ks = ps | {child[c]}
+                locs = [loc for (t, loc), k in tr[c].track_of.items() if t == g and k in ks]
+                if not locs or not _connected(np.asarray(labels[c][g]), locs):
+                    return False, most
+                most = max(most, len(locs))
+            return True, most
+
+        # Not merged while a view sees the parents apart (the first fusion was an
+        # occlusion in the other view) ...
+        while f < f_last and not joined(f)[0]:
+            f += 1
+        # ... and merged already where they show as two touching lobes.
+        for g in range(f - 1, max(f - 1 - lobe, -1), -1):
+            ok, most = joined(g)
+            if not (ok and most >= 2):
+                break
+            f = g
+        for c, ps in parents.items():
+            tr[c].events = [e for e in tr[c].events if not (e[1] == "merge" and child[c] in e[3])]
+            _relabel(tr[c], ps, child[c], f)
+            tr[c].events.append((f, "merge", sorted(ps), [child[c]]))
+            tr[c].events.sort(key=lambda e: e[0])
     return tr
 
 
@@ -475,6 +696,8 @@ def associate(
     for c in names:
         att = {(t, loc) for (cc, t, loc) in attached if cc == c}
         tracks[c] = track_view(labels[c], inst[inst.camera == c], att, p)
+    if len(names) >= 2:
+        tracks.update(reconcile_merges(tracks, labels, pairs, names[0], names[1], p))
     # Global track keys: (camera, track).
     parent = {}
 
@@ -552,7 +775,8 @@ def associate(
             # Tracks with no frame left (renamed by a later merge) drop out.
             pb = [b for b in (bubble_id(c, q) for q in par) if b >= 0]
             kb = [b for b in (bubble_id(c, q) for q in kids) if b >= 0]
-            if not kb:
+            # No event left, or none in 3D (a piece of one bubble, seen apart in this view).
+            if not kb or set(kb) <= set(pb):
                 continue
             ev_rows.append((t, c, kind, "+".join(map(str, pb)), "+".join(map(str, kb))))
     events = pd.DataFrame(ev_rows, columns=["frame", "camera", "event", "parents", "children"])
