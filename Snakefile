@@ -17,6 +17,7 @@ include: "workflow/rules/calibrate.smk"
 include: "workflow/rules/ingest.smk"
 include: "workflow/rules/mask.smk"
 include: "workflow/rules/fit.smk"
+include: "workflow/rules/views.smk"
 include: "workflow/rules/mesh.smk"
 include: "workflow/rules/evaluate.smk"
 include: "workflow/rules/report.smk"
@@ -27,6 +28,6 @@ rule all:
     default_target: True
     input:
         expand(f"{RESULTS}/calib/{{rig}}/cameras.json", rig=RIGS),
-        expand(f"{RESULTS}/{{session}}/fit/bubbles.csv", session=SESSIONS),
+        [final_fit(s, "bubbles.csv") for s in SESSIONS],
         f"{RESULTS}/campaign/metrics.csv",
         f"{RESULTS}/campaign/index.html",

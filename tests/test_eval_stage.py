@@ -233,3 +233,116 @@ def test_errors_name_the_file(session, tmp_path):
         )
         == 2
     )
+
+
+def test_region_metrics_ignore_the_background(session, tmp_path):
+    """True views = render + 0.05, and + 0.25 in a corner far from the bubbles: inside the
+    bubbles' region the error is exactly 0.05 (26.02 dB), the full frame is worse."""
+    s = session
+    gt2 = tmp_path / "gt"
+    shutil.copytree(s["gt"], gt2)
+    for t, f in enumerate(FRAMES[:4]):
+        img = render_surfels(s["surfels"], t, [s["mid"]], "cpu", s["surfels"]["bg_images"][:1])
+        img = img[0, ..., 0].astype(np.float64) + 0.05
+        img[:12, :12] += 0.2
+        q = np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16)
+        cv2.imwrite(str(gt2 / "views" / "mid" / f"{f:06d}.png"), q)
+    m = run_evaluate(s["ingest"], s["masks"], s["fit"], tmp_path / "eval", gt_dir=gt2)
+    h = m["heldout"]["mid"]
+    r = h["region"]
+    assert r["frames"] == 4 and 20 < r["pixels"] < 96 * 96 / 4
+    assert r["l1"] == pytest.approx(0.05, abs=2e-5)
+    assert r["psnr"] == pytest.approx(20 * np.log10(1 / 0.05), abs=0.01)
+    assert r["ssim"] > 0.9  # a constant offset of 0.05 over a textured region
+    assert h["psnr"] < r["psnr"] - 1.0 and h["l1"] > 0.05 + 1e-3
+    assert m["heldout"]["mean"]["region"]["psnr"] == r["psnr"]
+    assert m["heldout"]["mean"]["region"]["cameras"] == 1
+    assert "1.5·r_eq" in m["settings"]["region"]
+    # A larger region reaches the corner? No: 3·r_eq still leaves it out, but grows.
+    m3 = run_evaluate(
+        s["ingest"], s["masks"], s["fit"], tmp_path / "e3", gt_dir=gt2, region_scale=3.0
+    )
+    assert m3["heldout"]["mid"]["region"]["pixels"] > 3 * r["pixels"]
+
+
+def test_stage1_and_ablations(session, tmp_path, capsys):
+    """Stage 1: exact velocities, same surfels; ablation no_sdf: both bubbles off by
+    0.1 m/s in vx, no surfels (no held-out views); ablation no_guidance: bubble 2 off by
+    0.2 m/s in vy."""
+    s = session
+    fits = {}
+    for name, dv in (
+        ("stage1", {1: (0, 0, 0), 2: (0, 0, 0)}),
+        ("no_sdf", {1: (0.1, 0, 0), 2: (0.1, 0, 0)}),
+        ("no_guidance", {1: (0, 0, 0), 2: (0, 0.2, 0)}),
+    ):
+        d = tmp_path / name
+        d.mkdir()
+        rows = [
+            [f, f / FPS, b, *_pos(b)[t], *(V[b] + np.array(dv[b]))]
+            for b in (1, 2)
+            for t, f in enumerate(FRAMES)
+        ]
+        cols = ["frame", "time_s", "bubble", "x", "y", "z", "vx", "vy", "vz"]
+        pd.DataFrame(rows, columns=cols).to_csv(d / "bubbles.csv", index=False)
+        if name != "no_sdf":
+            shutil.copy(s["fit"] / "surfels.npz", d / "surfels.npz")
+        fits[name] = d
+    out = tmp_path / "eval"
+    argv = ["evaluate", "--ingest", str(s["ingest"]), "--masks", str(s["masks"])]
+    argv += ["--fit", str(s["fit"]), "--gt", str(s["gt"]), "--out", str(out)]
+    argv += ["--fit-stage1", str(fits["stage1"])]
+    argv += ["--ablation", f"no_sdf={fits['no_sdf']}"]
+    argv += ["--ablation", f"no_guidance={fits['no_guidance']}"]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "[stage1: velocity error 0.000" in printed and "[no_sdf: velocity error" in printed
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["velocity"]["method"]["mean_abs_error_mps"] == pytest.approx(0.05, abs=1e-9)
+    st = m["stage1"]
+    assert st["fit"] == str(fits["stage1"])
+    assert st["velocity"]["mean_abs_error_mps"] == pytest.approx(0.0, abs=1e-12)
+    assert st["velocity"]["matched"] == 10
+    assert st["heldout"]["mid"]["psnr"] == pytest.approx(m["heldout"]["mid"]["psnr"], abs=1e-9)
+    assert st["heldout"]["mid"]["region"]["frames"] == 4
+    assert st["reference2d"]["matched"] == 10
+    ab = m["ablations"]
+    assert sorted(ab) == ["no_guidance", "no_sdf"]
+    assert ab["no_sdf"]["velocity"]["mean_abs_error_mps"] == pytest.approx(0.1, abs=1e-9)
+    assert "heldout" not in ab["no_sdf"]
+    assert ab["no_guidance"]["velocity"]["mean_abs_error_mps"] == pytest.approx(0.1, abs=1e-9)
+    assert ab["no_guidance"]["heldout"]["mean"]["cameras"] == 1
+    tab = pd.read_csv(out / "velocity_table.csv")
+    assert sorted(set(tab.source)) == ["baseline", "method", "no_guidance", "no_sdf", "stage1"]
+    assert (tab.source == "stage1").sum() == 10
+    # The campaign table: stage 1 and the ablations beside the method, means only.
+    t = campaign_table([m])
+    cols = list(t.columns)
+    assert t["stage1.velocity.mean_abs_error_mps"][0] == pytest.approx(0.0, abs=1e-12)
+    assert t["ablations.no_sdf.velocity.relative_error"][0] > 0
+    assert "stage1.heldout.mean.region.psnr" in cols and "heldout.mean.region.psnr" in cols
+    assert not any(c.startswith("stage1.heldout.mid") for c in cols)
+    assert "heldout.mid.region.psnr" in cols
+    velocity_cols = [c for c in cols if ".velocity." in c or c.startswith("velocity.")]
+    first_heldout = min(i for i, c in enumerate(cols) if "heldout" in c)
+    assert all(cols.index(c) < first_heldout for c in velocity_cols)
+    assert cols.index("heldout.mean.psnr") < cols.index("heldout.mean.region.psnr")
+    # Bad arguments: a malformed --ablation, a missing ablation fit, a reserved name.
+    assert main(argv[:-2] + ["--ablation", "no_sdf"]) == 2
+    assert "NAME=DIR" in capsys.readouterr().err
+    with pytest.raises(FileNotFoundError, match=r"nowhere/bubbles.csv: session s01 no_x"):
+        run_evaluate(
+            s["ingest"],
+            s["masks"],
+            s["fit"],
+            tmp_path / "o",
+            ablations={"no_x": tmp_path / "nowhere"},
+        )
+    with pytest.raises(ValueError, match="not allowed"):
+        run_evaluate(
+            s["ingest"],
+            s["masks"],
+            s["fit"],
+            tmp_path / "o",
+            ablations={"baseline": fits["no_sdf"]},
+        )

@@ -72,3 +72,31 @@ def test_advect_bubble_velocity_nucleation_per_surfel_and_unbound_static():
     np.testing.assert_allclose(out[1], [0.0003, 0.0003, 0])  # nucleation: per surfel
     np.testing.assert_allclose(out[2], [0, 0, 0])  # unbound: stays
     np.testing.assert_allclose(out[3], [0, 0.02, 0])  # no bubble velocity: per surfel
+
+
+def test_track_continues_through_id_change_but_not_merges_births_or_spawns():
+    w = np.ones(8)
+    # Frame A: bubble 1 = surfels 0-2, bubble 2 = 3-5, nucleation region 0 = 6, 7.
+    a = np.array([1, 1, 1, 2, 2, 2, 0, 0])
+    # Same bubbles, new ids (the masks renumbered bubble 2 as 4), one stray surfel.
+    b = np.array([1, 1, -1, 4, 4, 4, 0, 0])
+    assert binding.track_continues(a, b, w, w, 1) == 1  # 2/3 of the weight stays
+    assert binding.track_continues(a, b, w, w, 2) == 4
+    assert binding.track_continues(b, a, w, w, 4) == 2  # backwards in time
+    assert binding.track_continues(a, b, w, w, 0) == 0
+    assert binding.track_continues(a, b, w, w, 9) is None  # no such bubble
+    # Bubbles 1 and 2 merge into 5: half of 5 comes from each, so both tracks end.
+    merged = np.array([5, 5, 5, 5, 5, 5, 0, 0])
+    assert binding.track_continues(a, merged, w, w, 1) is None
+    assert binding.track_continues(merged, a, w, w, 5) is None
+    # With the weights of bubble 1's surfels dominating at the later frame, 5 is 1's.
+    wm = np.array([3.0, 3, 3, 1, 1, 1, 1, 1])
+    assert binding.track_continues(a, merged, w, wm, 1) == 5
+    # A bubble detaching from the nucleation region starts a new track.
+    detach = np.array([1, 1, 1, 2, 2, 2, 3, 3])
+    assert binding.track_continues(detach, a, w, w, 3) is None
+    # Surfels spawned at the later frame (absent before: id −1, weight 0 there).
+    spawned_ids = np.array([-1, -1, -1, 2, 2, 2, 0, 0])
+    w_absent = np.array([0.0, 0, 0, 1, 1, 1, 1, 1])
+    assert binding.track_continues(a, spawned_ids, w, w_absent, 1) is None
+    assert binding.track_continues(spawned_ids, a, w_absent, w, 2) == 2

@@ -45,8 +45,9 @@ def flow_loss(model, clips, seed=0) -> float:
     eps = torch.randn(x0.shape, generator=g)
     t = torch.linspace(0.1, 0.9, len(clips))
     tt = t[:, None, None, None, None]
+    rows = torch.linspace(-1, 1, 24)[:16].expand(len(clips), -1)  # the crops' rows in 24
     with torch.no_grad():
-        v = model((1 - tt) * x0 + tt * eps, t)
+        v = model((1 - tt) * x0 + tt * eps, t, rows=rows if model.position else None)
     return float(((v - (eps - x0)) ** 2).mean())
 
 
@@ -142,3 +143,43 @@ def test_commands_train_prior_and_refine(tmp_path, capsys):
                "--out", str(tmp_path / "bad")])  # fmt: skip
     assert rc == 2 and "strength" in capsys.readouterr().err
     assert not (tmp_path / "bad.npy").exists()
+
+
+def test_patch_two_unet_is_pixel_unshuffled_and_refines_any_size():
+    """patch = 2: the U-Net runs on 2×2 space-to-depth frames (torch's pixel_unshuffle per
+    frame, undone by pixel_shuffle); sizes are padded to its multiple (2·2^levels−1)."""
+    import torch.nn.functional as F
+
+    from surfphase.prior.embedded import _per_frame
+
+    x = torch.randn(2, 1, 3, 8, 12)
+    y = _per_frame(F.pixel_unshuffle, x, 2)
+    assert y.shape == (2, 4, 3, 4, 6)
+    assert torch.equal(y[:, 1, :, 2, 3], x[:, 0, :, 4, 7])  # channel 1 = (row 0, column 1)
+    assert torch.equal(_per_frame(F.pixel_shuffle, y, 2), x)
+    torch.set_num_threads(1)
+    prior = EmbeddedPrior({**SMALL, "patch": 2, "steps": 3})
+    assert prior.model.multiple == 4
+    prior.train([bubble_clip(0)], log=None)
+    video = bubble_clip(4, frames=5)[:, :23, :21]
+    out = prior.refine(video, 0.35, seed=1)
+    assert out.shape == video.shape and np.isfinite(out).all()
+
+
+def test_training_windows_carry_their_rows_heights_in_the_frame():
+    """``position``: a crop's rows get their heights in the whole frame, −1 top … 1 bottom."""
+    from surfphase.prior.embedded import VideoUNet, row_heights
+
+    np.testing.assert_allclose(row_heights(5).numpy(), np.linspace(-1, 1, 5), atol=1e-7)
+    np.testing.assert_allclose(row_heights(5, 7)[5:].numpy(), [1.5, 2.0], atol=1e-7)
+    H = 20
+    clip = torch.arange(H, dtype=torch.float32)[None, :, None].expand(6, H, 9)  # value = row
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        w, rows = EmbeddedPrior._window([clip], rng, 4, 8)
+        first = int(w[0, 0, 0])
+        np.testing.assert_allclose(
+            rows.numpy(), np.linspace(-1, 1, H)[first : first + 8], atol=1e-6
+        )
+    with pytest.raises(ValueError, match="rows"):
+        VideoUNet([8], position=True)(torch.zeros(1, 1, 2, 4, 4), torch.zeros(1))

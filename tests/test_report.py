@@ -203,7 +203,9 @@ def test_commands(tables, tmp_path, capsys):
     assert main(argv) == 0
     assert "2 bubbles (2 paired with the truth)" in capsys.readouterr().out
     assert (rep / "velocity.png").stat().st_size > 1000
-    assert "velocity.method.relative_error" in (rep / "metrics.html").read_text()
+    page = (rep / "metrics.html").read_text()
+    assert "velocity.method.relative_error" in page
+    assert "the fits compared" in page and "method (final fit)" in page
     assert len(list((rep / "masks").glob("*.png"))) == 3
 
     pd.DataFrame([{"session": "s1", "velocity.method.relative_error": 0.1}]).to_csv(

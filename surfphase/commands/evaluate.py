@@ -23,6 +23,9 @@ def _run(args: argparse.Namespace) -> int:
         max_match_dist=args.max_match_dist_mm * 1e-3,
         include_nucleation=args.include_nucleation,
         reference_camera=args.reference_camera,
+        fit_stage1_dir=args.fit_stage1,
+        ablations=_named_dirs(args.ablation or [], "--ablation"),
+        region_scale=args.region_scale,
     )
     parts = [f"evaluate {m['session']}:"]
     for label, v in (m.get("velocity") or {}).items():
@@ -36,11 +39,42 @@ def _run(args: argparse.Namespace) -> int:
                 parts.append(
                     f"{label} vs 2D reference: relative error y {r['relative_error_y']:.3f}"
                 )
-    mean = (m.get("heldout") or {}).get("mean")
-    if mean:
-        parts.append(f"held-out PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}")
+    parts += _heldout_words((m.get("heldout") or {}).get("mean"))
+    others = {"stage1": m.get("stage1"), **(m.get("ablations") or {})}
+    for label, res in others.items():
+        if not res:
+            continue
+        rel = (res.get("velocity") or {}).get("relative_error")
+        words = [f"velocity error {rel:.3f}"] if rel is not None else []
+        words += _heldout_words((res.get("heldout") or {}).get("mean"))
+        if words:
+            parts.append(f"[{label}: " + ", ".join(words) + "]")
     print(" ".join(parts) + f" -> {args.out}")
     return 0
+
+
+def _heldout_words(mean: dict | None) -> list[str]:
+    """``held-out PSNR …`` (full frame, and the bubbles' region when present)."""
+    if not mean or mean.get("psnr") is None:
+        return []
+    words = [f"held-out PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.3f}"]
+    region = mean.get("region") or {}
+    if region.get("psnr") is not None:
+        words.append(f"bubble region {region['psnr']:.2f} dB, SSIM {region['ssim']:.3f}")
+    return words
+
+
+def _named_dirs(items: list[str], option: str) -> dict[str, str]:
+    """``NAME=DIR`` arguments → ``{name: dir}``; a malformed or repeated one is an error."""
+    out: dict[str, str] = {}
+    for item in items:
+        name, sep, folder = item.partition("=")
+        if not sep or not name or not folder:
+            raise ValueError(f"{option} {item!r}: expected NAME=DIR")
+        if name in out:
+            raise ValueError(f"{option} {item!r}: {name} given twice")
+        out[name] = folder
+    return out
 
 
 def _table(args: argparse.Namespace) -> int:
@@ -68,9 +102,11 @@ def register(subparsers) -> None:
         "evaluate",
         help="metrics of one session: held-out views, velocity vs truth / 2D reference",
         description="Evaluate a session's fit: novel-view L1/PSNR/SSIM on held-out views "
-        "(with --gt), bubble velocity error of the method and of the two-view centroid "
-        "baseline against the truth (with --gt), the 2D single-view reference (always), "
-        "Chamfer distance (with --gt and --meshes). Writes OUT/metrics.json, "
+        "(with --gt; full frame and inside the true bubbles' region), bubble velocity "
+        "error of the method and of the two-view centroid baseline against the truth "
+        "(with --gt), the 2D single-view reference (always), Chamfer distance (with --gt "
+        "and --meshes); the same for a stage-1 fit (--fit-stage1) and ablation fits "
+        "(--ablation). Writes OUT/metrics.json, "
         "OUT/baseline_bubbles.csv and OUT/velocity_table.csv.",
     )
     p.add_argument("--session", default=None, help="session name (default: ingest meta.json)")
@@ -84,6 +120,23 @@ def register(subparsers) -> None:
     p.add_argument("--max-match-dist-mm", type=float, default=1.5, help="bubble matching gate, mm")
     p.add_argument("--include-nucleation", action="store_true", help="also compare bubble 0")
     p.add_argument("--reference-camera", default=None, help="view of the 2D reference")
+    p.add_argument(
+        "--fit-stage1",
+        default=None,
+        help="the stage-1 fit folder (no refinement), scored beside the final --fit",
+    )
+    p.add_argument(
+        "--ablation",
+        action="append",
+        metavar="NAME=DIR",
+        help="an ablation's fit folder (e.g. no_sdf=results/s/ablations/no_sdf/fit); repeat",
+    )
+    p.add_argument(
+        "--region-scale",
+        type=float,
+        default=1.5,
+        help="bubble region: projected spheres of this × the true r_eq (with --gt)",
+    )
     p.set_defaults(func=_run)
 
     t = subparsers.add_parser(

@@ -6,21 +6,53 @@ import argparse
 import json
 
 
-def _run(args: argparse.Namespace) -> int:
-    from surfphase.mesh.stage import run_mesh
+def _params(text: str | None) -> dict:
+    if not text:
+        return {}
+    try:
+        params = json.loads(text)
+    except ValueError as e:
+        raise ValueError(f"--params-json: not valid JSON ({e})") from e
+    if not isinstance(params, dict):
+        raise ValueError("--params-json: expected a JSON object of mesh parameters")
+    return params
 
-    params = {}
-    if args.params_json:
-        try:
-            params = json.loads(args.params_json)
-        except ValueError as e:
-            raise ValueError(f"--params-json: not valid JSON ({e})") from e
-        if not isinstance(params, dict):
-            raise ValueError("--params-json: expected a JSON object of mesh parameters")
+
+def _run(args: argparse.Namespace) -> int:
+    from surfphase.mesh.stage import run_mesh, run_mesh_window
+
+    params = _params(args.params_json)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    if (args.window is None) != (args.window_size is None):
+        raise ValueError("--window and --window-size go together")
+    if args.window is not None:
+        info = run_mesh_window(
+            args.fit, args.ingest, args.out, args.window, args.window_size, params, args.device
+        )
+        print(
+            f"mesh {info['session']}: window {args.window} ({len(info['frames'])} frames) "
+            f"-> {args.out}"
+        )
+        return 0
     summary = run_mesh(args.fit, args.ingest, args.out, params, device=args.device)
     rows = summary["frames"]
     n_v = sum(r["vertices"] for r in rows)
     print(f"mesh {summary['session']}: {len(rows)} frames, {n_v} vertices -> {args.out}")
+    return 0
+
+
+def _gather(args: argparse.Namespace) -> int:
+    from surfphase.mesh.stage import gather_mesh
+
+    summary = gather_mesh(args.windows, args.out)
+    rows = summary["frames"]
+    print(
+        f"mesh {summary['session']}: {len(rows)} frames from {len(args.windows)} windows "
+        f"-> {args.out}"
+    )
     return 0
 
 
@@ -31,7 +63,9 @@ def register(subparsers) -> None:
         description="Fuse the fitted surfels' rendered depth (input and orbit views) into "
         "a truncated signed distance volume, run marching cubes, clean with pymeshlab and "
         "write OUT/<frame:06d>.ply (x y z in m, vx vy vz in m/s, speed colour) and "
-        "OUT/mesh.json.",
+        "OUT/mesh.json. Finished frames are kept in OUT.partial/, so a killed run, rerun, "
+        "goes on where it stopped. With --window K --window-size N only the K-th window "
+        "of N frames is meshed, into a window folder for `surfphase mesh-gather`.",
     )
     p.add_argument("--fit", required=True, help="fit folder (surfels.npz)")
     p.add_argument("--ingest", required=True, help="ingest folder (cameras.json, meta.json)")
@@ -42,7 +76,20 @@ def register(subparsers) -> None:
         help='mesh parameters as JSON, e.g. \'{"voxels": 80, "frames": [0, 1]}\'',
     )
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--window", type=int, default=None, help="window index (0-based)")
+    p.add_argument("--window-size", type=int, default=None, help="frames per window")
     p.set_defaults(func=_run)
+
+    g = subparsers.add_parser(
+        "mesh-gather",
+        help="gather mesh window folders into one mesh folder (as a single mesh job)",
+        description="Read the window folders written by `surfphase mesh --window` and write "
+        "OUT/<frame:06d>.ply and OUT/mesh.json, the same files as one `surfphase mesh` run.",
+    )
+    g.add_argument("--windows", nargs="+", required=True, help="window folders")
+    g.add_argument("--out", required=True, help="output folder")
+    g.set_defaults(func=_gather)
 
 
 def _bench(args: argparse.Namespace) -> int:

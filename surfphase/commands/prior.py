@@ -63,14 +63,21 @@ def register(subparsers) -> None:
     r = subparsers.add_parser(
         "refine",
         help="refine one view's video with the prior (SDEdit)",
-        description="SDEdit one video with a trained prior. Reads a folder of frames or an "
-        ".npy stack (T, H, W); writes OUT.npy (float32 in [0, 1]) and the PNG frames OUT/ "
-        "(OUT given with or without .npy), plus OUT/refine.json.",
+        description="SDEdit one video with a trained prior. With --video (a folder of frames "
+        "or an .npy stack (T, H, W)): writes OUT.npy (float32 in [0, 1]) and the PNG frames "
+        "OUT/ (OUT given with or without .npy), plus OUT/refine.json. With --views DIR "
+        "--view NAME (a render-views folder): writes OUT/NAME.npy (uint16, T×H×W), "
+        "OUT/NAME.mp4 (at the session's fps) and OUT/NAME.json, the .npy last.",
     )
     r.add_argument("--prior", required=True, type=Path, help="prior folder (train-prior --out)")
-    r.add_argument("--video", required=True, type=Path, help="frame folder or .npy stack")
+    src = r.add_mutually_exclusive_group(required=True)
+    src.add_argument("--video", type=Path, help="frame folder or .npy stack")
+    src.add_argument("--views", type=Path, help="render-views folder (with --view)")
+    r.add_argument("--view", help="view name in --views, e.g. orbit04")
     r.add_argument("--strength", required=True, type=float, help="SDEdit strength in [0, 1]")
-    r.add_argument("--out", required=True, type=Path, help="output stem (OUT.npy and OUT/)")
+    r.add_argument(
+        "--out", required=True, type=Path, help="output stem (--video) or folder (--views)"
+    )
     r.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
     r.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     r.add_argument("--device", default="cpu", help="auto, cpu or cuda (default cpu)")
@@ -115,12 +122,13 @@ def train_prior(
     import cv2
 
     from surfphase.device import resolve_device
-    from surfphase.prior.clips import read_clips
+    from surfphase.prior.clips import find_clips, read_clips
     from surfphase.prior.interface import new_prior
 
     dev = resolve_device(device)
+    find_clips(clips_spec)  # a missing clips folder fails before any model is built
+    prior = new_prior(backend, params, device=dev)  # missing Wan weights fail here
     names, clips = read_clips(clips_spec)
-    prior = new_prior(backend, params, device=dev)
     t0 = time.perf_counter()
     kwargs = {"names": names} if backend == "wan" else {}
     train_log = prior.train(clips, log=log, **kwargs)
@@ -136,7 +144,7 @@ def train_prior(
     real = [c[:frames, :size, :size] for c in clips[: min(2, len(clips))]]
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.part-", dir=out.parent))
+    tmp = _part_dir(out)
     try:
         prior.save(tmp)
         if not cv2.imwrite(str(tmp / "samples.png"), sample_grid(real, samples)):
@@ -167,6 +175,16 @@ def train_prior(
         if tmp.exists():
             shutil.rmtree(tmp)
     return report
+
+
+def _part_dir(final: Path) -> Path:
+    """A fresh temporary folder ``.<name>.part-*`` next to ``final``, with the usual
+    umask permissions (mkdtemp makes owner-only folders)."""
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.part-", dir=final.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)
+    return tmp
 
 
 def _torch_threads() -> int:
@@ -219,13 +237,77 @@ def refine_video(
     return info
 
 
+def refine_view(
+    prior_dir: Path, views_dir: Path, view: str, strength: float, out_dir: Path, seed: int = 0,
+    device="cpu",
+) -> dict:  # fmt: skip
+    """Refine orbit view ``view`` of a render-views folder into ``out_dir``.
+
+    Writes ``out_dir/<view>.json`` (settings, timing), ``<view>.mp4`` (H.264 at the
+    session's fps) and ``<view>.npy`` ((T, H, W) uint16, value·65535), in that order,
+    each renamed into place from a private temporary folder ``.<view>.part-*`` that is
+    created before the work starts; a stale one (left by a killed run) is removed first,
+    so a rerun starts clean and gives the same arrays (the noise is seeded).
+    """
+    from surfphase.device import resolve_device
+    from surfphase.io import atomic_write_json, save_npy
+    from surfphase.prior.interface import load_prior
+    from surfphase.prior.sdedit import check_strength
+    from surfphase.views import load_view, to_uint16, write_mp4
+
+    check_strength(strength)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for stale in out_dir.glob(f".{view}.part-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    frames, fps = load_view(views_dir, view)
+    part = _part_dir(out_dir / view)
+    try:
+        prior = load_prior(prior_dir, device=resolve_device(device))
+        t0 = time.perf_counter()
+        refined = prior.refine(frames, strength, seed)
+        seconds = time.perf_counter() - t0
+        stack = to_uint16(refined)
+        info = {
+            "prior": str(prior_dir),
+            "backend": prior.backend,
+            "views": str(views_dir),
+            "view": view,
+            "shape": list(stack.shape),
+            "strength": strength,
+            "seed": seed,
+            "fps": fps,
+            "threads": _torch_threads(),
+            "refine_s": round(seconds, 2),
+            "mean_abs_change": float(np.abs(stack / 65535.0 - frames).mean()),
+        }
+        atomic_write_json(part / f"{view}.json", info)
+        write_mp4(part / f"{view}.mp4", refined, fps)
+        save_npy(part / f"{view}.npy", stack)
+        for name in (f"{view}.json", f"{view}.mp4", f"{view}.npy"):  # the .npy last
+            os.replace(part / name, out_dir / name)
+    finally:
+        shutil.rmtree(part, ignore_errors=True)
+    return info
+
+
 def _refine(args: argparse.Namespace) -> int:
     _set_threads(args.threads)
-    info = refine_video(
-        args.prior, args.video, args.strength, args.out, args.seed, args.device, args.bit_depth
-    )
+    if args.views is not None:
+        if not args.view:
+            raise ValueError("refine: --views needs --view NAME (e.g. orbit04)")
+        info = refine_view(
+            args.prior, args.views, args.view, args.strength, args.out, args.seed, args.device
+        )
+        src = args.views / f"{args.view}.npy"
+    else:
+        info = refine_video(
+            args.prior, args.video, args.strength, args.out, args.seed, args.device,
+            args.bit_depth,
+        )  # fmt: skip
+        src = args.video
     print(
-        f"refined {args.video} at strength {args.strength} in {info['refine_s']:.1f} s "
+        f"refined {src} at strength {args.strength} in {info['refine_s']:.1f} s "
         f"(mean |change| {info['mean_abs_change']:.4f})"
     )
     return 0

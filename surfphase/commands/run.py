@@ -195,7 +195,8 @@ def output_state(o: OutputState, camp: Path) -> str:
     """done / failed / outdated / pending for one output."""
     if o.status == "incomplete":
         return "failed"
-    if o.status == "ok" or (camp / o.path).exists():
+    # A temporary output (e.g. a mesh window) removed after its consumer ran was made.
+    if o.status in ("ok", "removed temp file") or (camp / o.path).exists():
         return "outdated" if o.plan == "update pending" else "done"
     if any((camp / log).is_file() for log in o.logs):
         return "failed"
@@ -374,7 +375,7 @@ class Progress:
         st = s.strip()
         if self.failing and not s[:1].isspace():
             self.close()
-        if m := re.match(r"^(?:local)?rule (\S+):$", s):
+        if m := re.match(r"^(?:local)?(?:rule|checkpoint) (\S+):$", s):
             self.pending, self.pending_id, self.in_error = _Job(m.group(1)), None, False
         elif m := re.match(r"^Error in rule (\S+):$", s):
             self.pending, self.pending_id, self.in_error = _Job(m.group(1)), None, True

@@ -6,6 +6,13 @@ the standard 11×11 Gaussian window, σ = 1.5 pixels (Wang et al. 2004), with
 window lies wholly inside the image and averaged over those positions and the channels;
 this equals scikit-image's ``structural_similarity(gaussian_weights=True, sigma=1.5,
 use_sample_covariance=False)``.
+
+Region metrics (:func:`region_metrics`) restrict the same quantities to a boolean pixel
+mask (e.g. the projected bubbles): L1 and the PSNR's MSE average over the masked pixels
+(and channels); the region SSIM is the mean of the SSIM map over the masked pixels whose
+11×11 window lies wholly inside the image (the positions the full-frame SSIM averages),
+which equals averaging scikit-image's ``structural_similarity(full=True)`` map over the
+same pixels.
 """
 
 from __future__ import annotations
@@ -92,4 +99,62 @@ def image_metrics(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0)
         "l1": l1(pred, target),
         "psnr": psnr(pred, target, data_range),
         "ssim": ssim(pred, target, data_range),
+    }
+
+
+def _region(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(H, W) bool mask checked against an (H, W[, C]) image."""
+    m = np.asarray(mask, dtype=bool)
+    if m.shape != a.shape[:2]:
+        raise ValueError(f"mask of shape {m.shape} does not match images of shape {a.shape}")
+    if not m.any():
+        raise ValueError("the region mask is empty")
+    return m
+
+
+def masked_l1(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
+    """Mean absolute difference over the pixels where ``mask`` (H, W) is true, all
+    channels (image units)."""
+    a, b = _pair(pred, target)
+    m = _region(a, mask)
+    return float(np.mean(np.abs(a[m] - b[m])))
+
+
+def masked_psnr(
+    pred: np.ndarray, target: np.ndarray, mask: np.ndarray, data_range: float = 1.0
+) -> float:
+    """PSNR in dB with the MSE taken over the masked pixels (all channels); ``inf`` if
+    they are equal."""
+    a, b = _pair(pred, target)
+    m = _region(a, mask)
+    mse = float(np.mean((a[m] - b[m]) ** 2))
+    if mse == 0.0:
+        return float("inf")
+    return float(10.0 * np.log10(data_range**2 / mse))
+
+
+def masked_ssim(
+    pred: np.ndarray, target: np.ndarray, mask: np.ndarray, data_range: float = 1.0
+) -> float:
+    """Mean of the SSIM map over the masked pixels whose window lies inside the image;
+    channels averaged; NaN if the mask has no such pixel (it hugs the border)."""
+    a, b = _pair(pred, target)
+    m = _region(a, mask)
+    r = SSIM_RADIUS
+    inner = m[r : m.shape[0] - r, r : m.shape[1] - r]
+    if not inner.any():
+        return float("nan")
+    chans = [(a, b)] if a.ndim == 2 else [(a[..., c], b[..., c]) for c in range(a.shape[2])]
+    return float(np.mean([ssim_map(x, y, data_range)[inner].mean() for x, y in chans]))
+
+
+def region_metrics(
+    pred: np.ndarray, target: np.ndarray, mask: np.ndarray, data_range: float = 1.0
+) -> dict:
+    """``{"l1", "psnr", "ssim", "pixels"}`` of one image restricted to ``mask`` (H, W)."""
+    return {
+        "l1": masked_l1(pred, target, mask),
+        "psnr": masked_psnr(pred, target, mask, data_range),
+        "ssim": masked_ssim(pred, target, mask, data_range),
+        "pixels": int(np.count_nonzero(mask)),
     }

@@ -7,23 +7,31 @@ Inputs (folders of earlier stages):
 * ``MASKS`` — ``<cam>_labels.npy`` (int32 T × H × W, −1 background, ids shared across
   views and time, 0 the nucleation region);
 * ``FIT`` — ``bubbles.csv`` (``frame, time_s, bubble, x, y, z, vx, vy, vz``; m, m/s, lab
-  frame) and, for held-out views, ``surfels.npz`` (:mod:`surfphase.fit.outputs`);
-* ``GT`` (synthetic sessions only) — ``cameras.json``, ``bubbles.csv``,
+  frame) and, for held-out views, ``surfels.npz`` (:mod:`surfphase.fit.outputs`); the
+  final fit, and optionally the stage-1 fit and ablation fits in the same format;
+* ``GT`` (synthetic sessions only) — ``cameras.json``, ``bubbles.csv`` (with ``r_eq``
+  for the region metrics),
   ``views/<cam>/<frame:06d>.png``, ``meshes/<frame:06d>.ply``;
 * ``MESHES`` (optional, from the mesh stage) — ``<frame:06d>.ply``, metres.
 
 Outputs in ``OUT`` (each written whole or not at all):
 
 * ``metrics.json`` — ``session``; ``heldout`` (per held-out camera and ``mean``: ``l1``,
-  ``psnr`` dB, ``ssim``, ``frames``); ``velocity`` (``method`` and ``baseline``:
-  ``mean_abs_error_mps``, ``relative_error``, ``mean_speed_gt_mps``, ``matched``);
-  ``chamfer_mm`` (with method meshes); ``reference2d`` (always: the 2D reference's
-  relative x/y errors of ``method`` and ``baseline``; with ground truth also ``truth``,
-  the true velocities of the baseline-matched bubbles against the reference, which
-  scores the reference itself); non-finite numbers are ``null``;
+  ``psnr`` dB, ``ssim``, ``frames`` over the full frame, and ``region``: the same inside
+  the true bubbles' region, :mod:`.regions`, with ``pixels`` its mean size);
+  ``velocity`` (``method`` and ``baseline``: ``mean_abs_error_mps``,
+  ``relative_error``, ``mean_speed_gt_mps``, ``matched``); ``chamfer_mm`` (with method
+  meshes); ``reference2d`` (always: the 2D reference's relative x/y errors of ``method``
+  and ``baseline``; with ground truth also ``truth``, the true velocities of the
+  baseline-matched bubbles against the reference, which scores the reference itself);
+  ``stage1`` (with a stage-1 fit) and ``ablations`` ``{name: …}`` (with ablation fits):
+  each ``fit`` (its folder), ``velocity`` (errors as the method's), ``heldout`` (as
+  above) and ``reference2d`` (its errors against the 2D reference); non-finite numbers
+  are ``null``;
 * ``baseline_bubbles.csv`` — the two-view centroid baseline (:mod:`.baseline`);
 * ``velocity_table.csv`` — one row per compared bubble-frame, column ``source``
-  (``method``/``baseline``): with ground truth the matches of
+  (``method``/``baseline``, and ``stage1`` / the ablation names with ground truth):
+  with ground truth the matches of
   :func:`surfphase.eval.velocity.match_bubbles`, without it the rows of
   :func:`surfphase.eval.reference2d.compare_to_reference`.
 
@@ -38,7 +46,8 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Sequence
+import re
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -46,7 +55,7 @@ import pandas as pd
 
 from surfphase.cameras import Camera, load_cameras
 from surfphase.eval import baseline as bl
-from surfphase.eval import geometry, image_metrics, reference2d, velocity
+from surfphase.eval import geometry, image_metrics, reference2d, regions, velocity
 from surfphase.io import atomic_write_json, atomic_write_text
 
 METRIC_KEYS = ("l1", "psnr", "ssim")
@@ -133,24 +142,34 @@ def heldout_metrics(
     cameras: Sequence[Camera],
     views_dir: Path,
     device: str = "cpu",
+    truth: pd.DataFrame | None = None,
+    region_scale: float = regions.REGION_SCALE,
 ) -> dict:
-    """L1, PSNR (dB) and SSIM of the surfels rendered into held-out cameras.
+    """L1, PSNR (dB) and SSIM of the surfels rendered into held-out cameras, over the
+    full frame and, with ``truth``, inside the bubbles' region.
 
     Every frame of ``surfels`` (``frame`` = session frame index) that has
     ``views_dir/<cam>/<frame:06d>.png`` is rendered and compared; the per-camera values
     are means over frames, ``mean`` the mean over cameras. The fit reconstructs only the
     bubbles: behind them a held-out view sees the mean of the input views' background
     images when they have its size, else the fit's constant background colour.
+
+    With ``truth`` (the true bubbles: ``frame, x, y, z, r_eq``, metres), each camera also
+    gets ``region``: the same metrics restricted to :func:`surfphase.eval.regions.
+    bubble_region` (projected spheres of ``region_scale · r_eq``), averaged over the
+    frames where the region is not empty (``frames``), with ``pixels`` its mean size.
     """
     from surfphase.fit.outputs import render_surfels
 
     out: dict = {}
     bg_images = surfels.get("bg_images")
+    frames = [int(f) for f in np.asarray(surfels["frame"]).tolist()]
     for cam in cameras:
         folder = views_dir / cam.name
-        vals = []
-        for t, f in enumerate(np.asarray(surfels["frame"]).tolist()):
-            path = folder / f"{int(f):06d}.png"
+        masks = regions.region_masks(cam, truth, frames, region_scale) if truth is not None else {}
+        vals, region_vals = [], []
+        for t, f in enumerate(frames):
+            path = folder / f"{f:06d}.png"
             if not path.exists():
                 continue
             target = read_view(path)
@@ -170,13 +189,44 @@ def heldout_metrics(
                     )
                 rgb = rgb[..., 0]
             vals.append(image_metrics.image_metrics(rgb, target))
+            mask = masks.get(f)
+            if mask is not None and mask.any():
+                region_vals.append(image_metrics.region_metrics(rgb, target, mask))
         if vals:
-            out[cam.name] = {k: float(np.mean([v[k] for v in vals])) for k in METRIC_KEYS}
-            out[cam.name]["frames"] = len(vals)
+            out[cam.name] = _mean_metrics(vals)
+            if truth is not None:
+                out[cam.name]["region"] = _mean_metrics(region_vals)
     if out:
-        mean = {k: float(np.mean([out[c][k] for c in out])) for k in METRIC_KEYS}
-        out["mean"] = {**mean, "cameras": len(out)}
+        cams = list(out)
+        out["mean"] = {**_mean_over(out[c] for c in cams), "cameras": len(cams)}
+        if truth is not None:
+            with_region = [c for c in cams if out[c]["region"]["frames"]]
+            out["mean"]["region"] = {
+                **_mean_over(out[c]["region"] for c in with_region),
+                "cameras": len(with_region),
+            }
     return out
+
+
+def _mean_metrics(vals: Sequence[dict]) -> dict:
+    """Per-frame metric dicts → their means over frames, ``frames``, and ``pixels``."""
+    out = {k: _nanmean([v[k] for v in vals]) for k in METRIC_KEYS}
+    out["frames"] = len(vals)
+    if vals and "pixels" in vals[0]:
+        out["pixels"] = float(np.mean([v["pixels"] for v in vals]))
+    return out
+
+
+def _mean_over(items) -> dict:
+    items = list(items)
+    return {k: _nanmean([i[k] for i in items]) for k in METRIC_KEYS}
+
+
+def _nanmean(values: Sequence[float]) -> float:
+    """Mean of the finite-or-infinite values, NaNs left out; NaN if there are none."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[~np.isnan(v)]
+    return float(v.mean()) if v.size else float("nan")
 
 
 def chamfer_per_frame(
@@ -216,6 +266,13 @@ def _finite(obj):
     return obj
 
 
+def _truth_region_table(gt_dir: Path, name: str) -> pd.DataFrame | None:
+    """The true bubbles with ``r_eq`` for region metrics, or None if it has no radius."""
+    cols = ["frame", "x", "y", "z"]
+    truth = read_table(gt_dir / "bubbles.csv", cols, f"session {name}")
+    return truth if "r_eq" in truth.columns else None
+
+
 # -- the stage ---------------------------------------------------------------------------
 def run_evaluate(
     ingest_dir: str | os.PathLike,
@@ -229,11 +286,15 @@ def run_evaluate(
     max_match_dist: float = velocity.MAX_MATCH_DIST,
     include_nucleation: bool = False,
     reference_camera: str | None = None,
+    fit_stage1_dir: str | os.PathLike | None = None,
+    ablations: Mapping[str, str | os.PathLike] | None = None,
+    region_scale: float = regions.REGION_SCALE,
 ) -> dict:
     """Evaluate one session (see the module docstring); returns the metrics dict.
 
     Args:
-        ingest_dir, masks_dir, fit_dir: outputs of the ingest, mask and fit stages.
+        ingest_dir, masks_dir, fit_dir: outputs of the ingest, mask and fit stages
+            (``fit_dir``: the final fit, stage 2 when refinement is on).
         out_dir: where ``metrics.json``, ``baseline_bubbles.csv`` and
             ``velocity_table.csv`` go.
         gt_dir: ground-truth folder (synthetic sessions), or None for real data.
@@ -243,6 +304,11 @@ def run_evaluate(
         max_match_dist: gating distance of the bubble matching, metres.
         include_nucleation: compare bubble 0 (nucleation region) too.
         reference_camera: view of the 2D reference (default: the first input camera).
+        fit_stage1_dir: the stage-1 fit (no refinement), scored like the final fit into
+            ``metrics["stage1"]``.
+        ablations: ``{name: fit folder}`` of ablation fits (e.g. ``no_sdf``), scored
+            into ``metrics["ablations"][name]``.
+        region_scale: bubble region = projected spheres of ``region_scale · r_eq``.
     """
     from surfphase.device import resolve_device
 
@@ -250,7 +316,18 @@ def run_evaluate(
     data = read_session(ingest_dir, masks_dir)
     name = session or data["session"]
     fit_cols = ["frame", "bubble", "x", "y", "z", "vx", "vy", "vz"]
+    ablations = {str(k): Path(v) for k, v in (ablations or {}).items()}
+    for label, d in ablations.items():
+        if not label or label in ("method", "baseline", "stage1"):
+            raise ValueError(f"{d}: session {name}: ablation name {label!r} is not allowed")
+    # Every fit's table first, so that a missing one fails before any long computation.
     method = read_table(fit_dir / "bubbles.csv", fit_cols, f"session {name}")
+    others: dict[str, tuple[Path, pd.DataFrame]] = {}
+    if fit_stage1_dir is not None:
+        d = Path(fit_stage1_dir)
+        others["stage1"] = (d, read_table(d / "bubbles.csv", fit_cols, f"session {name} stage 1"))
+    for label, d in ablations.items():
+        others[label] = (d, read_table(d / "bubbles.csv", fit_cols, f"session {name} {label}"))
     base = bl.baseline_bubbles(data["cameras"], data["labels"], data["frames"], data["fps"])
     keep = (lambda df: df) if include_nucleation else (lambda df: df[df["bubble"] >= 1])
     metrics: dict = {
@@ -269,9 +346,18 @@ def run_evaluate(
     metrics["settings"]["frames_compared"] = int(base_cmp["frame"].nunique())
     tables = []
     truth_by_mask_id = None
+    truth = region_truth = None
+    held: list[Camera] = []
+    dev = str(resolve_device(device))
     if gt_dir is not None:
         gt_dir = Path(gt_dir)
         truth = read_table(gt_dir / "bubbles.csv", fit_cols, f"session {name}")
+        region_truth = _truth_region_table(gt_dir, name)
+        metrics["settings"]["region"] = (
+            f"projected spheres of {region_scale:g}·r_eq around the true bubbles"
+            if region_truth is not None
+            else "none: the ground truth's bubbles.csv has no r_eq column"
+        )
         metrics["velocity"] = {}
         for label, pred in (("method", method), ("baseline", base_cmp)):
             m = velocity.match_bubbles(keep(pred), truth, max_match_dist)
@@ -284,16 +370,13 @@ def run_evaluate(
                 )
             m.insert(0, "source", label)
             tables.append(m)
-        surfels_path = fit_dir / "surfels.npz"
         views_dir = gt_dir / "views"
-        if surfels_path.exists() and views_dir.is_dir():
-            from surfphase.fit.outputs import load_surfels
-
+        if views_dir.is_dir():
             gt_cams = load_cameras(gt_dir / "cameras.json")
             held = [c for n, c in gt_cams.items() if (views_dir / n).is_dir()]
-            metrics["heldout"] = heldout_metrics(
-                load_surfels(surfels_path), held, views_dir, str(resolve_device(device))
-            )
+        held_out = _fit_heldout(fit_dir, held, gt_dir, dev, region_truth, region_scale)
+        if held_out is not None:
+            metrics["heldout"] = held_out
         if meshes_dir is not None:
             metrics["chamfer_mm"] = chamfer_per_frame(
                 Path(meshes_dir), gt_dir / "meshes", data["frames"].tolist()
@@ -317,6 +400,22 @@ def run_evaluate(
         metrics["reference2d"]["truth"] = reference2d.compare_to_reference(
             truth_by_mask_id, ref, ref_cam
         )[0]
+    # Stage 1 and the ablations: the same velocity, held-out and 2D-reference scores.
+    for label, (d, pred) in others.items():
+        res: dict = {"fit": str(d)}
+        if truth is not None:
+            m = velocity.match_bubbles(keep(pred), truth, max_match_dist)
+            res["velocity"] = velocity.velocity_errors(m)
+            m.insert(0, "source", label)
+            tables.append(m)
+            held_out = _fit_heldout(d, held, gt_dir, dev, region_truth, region_scale)
+            if held_out is not None:
+                res["heldout"] = held_out
+        res["reference2d"] = reference2d.compare_to_reference(keep(pred), ref, ref_cam)[0]
+        if label == "stage1":
+            metrics["stage1"] = res
+        else:
+            metrics.setdefault("ablations", {})[label] = res
     metrics = _finite(metrics)
     out_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out_dir / "baseline_bubbles.csv", base.to_csv(index=False))
@@ -326,21 +425,64 @@ def run_evaluate(
     return metrics
 
 
+def _fit_heldout(
+    fit_dir: Path,
+    held: Sequence[Camera],
+    gt_dir: Path,
+    device: str,
+    region_truth: pd.DataFrame | None,
+    region_scale: float,
+) -> dict | None:
+    """:func:`heldout_metrics` of ``fit_dir/surfels.npz``, or None without surfels or
+    held-out cameras."""
+    surfels_path = fit_dir / "surfels.npz"
+    if not held or not surfels_path.exists():
+        return None
+    from surfphase.fit.outputs import load_surfels
+
+    return heldout_metrics(
+        load_surfels(surfels_path), held, gt_dir / "views", device, region_truth, region_scale
+    )
+
+
 def campaign_table(metrics: Sequence[dict]) -> pd.DataFrame:
     """One row per session: the metrics JSONs flattened (``velocity.method.relative_error``
-    …), session first, then velocity (method beside baseline), held-out means, Chamfer and
-    the 2D reference; per-frame Chamfer values are left out."""
+    …), session first, then velocity (method beside baseline, stage 1 and the ablations),
+    held-out means (full frame, then the bubbles' region), Chamfer and the 2D reference;
+    per-frame Chamfer values are left out, and so are the per-camera held-out values of
+    stage 1 and the ablations (their means stay)."""
     flat = []
     for m in metrics:
         m = dict(m)
         if isinstance(m.get("chamfer_mm"), dict):
             m["chamfer_mm"] = {k: v for k, v in m["chamfer_mm"].items() if k != "per_frame"}
         m.pop("cameras", None)
+        if isinstance(m.get("stage1"), dict):
+            m["stage1"] = _means_only(m["stage1"])
+        if isinstance(m.get("ablations"), dict):
+            m["ablations"] = {k: _means_only(v) for k, v in m["ablations"].items()}
         flat.append(m)
     df = pd.json_normalize(flat, sep=".")
-    order = ["session", "velocity.", "heldout.mean.", "chamfer_mm.", "reference2d.", "heldout."]
+    # Column groups in order, as regular expressions matched at the start of a name.
+    order = [
+        r"session$", r"velocity\.", r"stage1\.velocity\.", r"ablations\.[^.]+\.velocity\.",
+        r"heldout\.mean\.(?!region)", r"stage1\.heldout\.mean\.(?!region)",
+        r"ablations\.[^.]+\.heldout\.mean\.(?!region)", r"heldout\.mean\.region\.",
+        r"stage1\.heldout\.mean\.region\.", r"ablations\.[^.]+\.heldout\.mean\.region\.",
+        r"chamfer_mm\.", r"reference2d\.", r"stage1\.reference2d\.",
+        r"ablations\.[^.]+\.reference2d\.", r"heldout\.",
+    ]  # fmt: skip
     cols: list[str] = []
-    for prefix in order:
-        cols += [c for c in df.columns if c.startswith(prefix) and c not in cols]
+    for group in order:
+        pat = re.compile(group)
+        cols += [c for c in df.columns if pat.match(c) and c not in cols]
     cols += [c for c in df.columns if c not in cols]
     return df[cols]
+
+
+def _means_only(fit_metrics: dict) -> dict:
+    """A stage-1 / ablation entry without its per-camera held-out values."""
+    out = dict(fit_metrics)
+    if isinstance(out.get("heldout"), dict):
+        out["heldout"] = {k: v for k, v in out["heldout"].items() if k == "mean"}
+    return out

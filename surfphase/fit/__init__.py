@@ -8,9 +8,14 @@
   (:class:`~surfphase.fit.densify.Densify2DGS`, :class:`~surfphase.fit.densify.NoDensify`);
 * :mod:`surfphase.fit.init` — surfel seeds on the visual hull of the masks, scene extent;
 * :mod:`surfphase.fit.binding` — binding surfels to bubbles, centroids, velocities,
-  advection;
+  advection, bubble tracks through id changes and merges;
+* :mod:`surfphase.fit.register` — one rigid translation per bubble fitted to the new
+  frame after the advection;
 * :mod:`surfphase.fit.stage` — :func:`~surfphase.fit.stage.run_fit`, the checkpointed
   per-frame loop, and :data:`~surfphase.fit.stage.DEFAULTS` (every hyperparameter);
+* :mod:`surfphase.fit.stage2` — :func:`~surfphase.fit.stage2.run_fit_stage2`, the same
+  loop restarted from the stage-1 surfels with the refined orbit views as weighted
+  extra supervision (DESIGN.md §6); :mod:`surfphase.fit.bench_stage2` times its steps;
 * :mod:`surfphase.fit.outputs` — ``surfels.npz`` (format table), ``bubbles.csv``,
   ``curves.csv``, ``summary.json``, ``renders/``;
 * :mod:`surfphase.fit.bench` — ``surfphase bench fit`` (the only module that imports

@@ -158,3 +158,52 @@ def advect(
         else:
             vel[sel] = bubble_velocity[int(b)]
     return means + vel * dt
+
+
+def track_continues(
+    bubble_a: np.ndarray,
+    bubble_b: np.ndarray,
+    weights_a: np.ndarray,
+    weights_b: np.ndarray,
+    b: int,
+    min_share: float = 0.5,
+) -> int | None:
+    """The bubble that continues bubble ``b`` from one frame to the next, if any.
+
+    Bubble ids of the masks can change from frame to frame, and bubbles merge, so a
+    bubble's track is followed through its surfels: ``b`` at frame A continues as ``q``
+    at frame B when more than ``min_share`` of ``b``'s surfel weight (at A) is bound to
+    ``q`` at B, and more than ``min_share`` of ``q``'s surfel weight (at B) was bound to
+    ``b`` at A. A merge (``q`` drawn from two bubbles), a split, or a bubble leaving or
+    joining the nucleation region ends the track. The same function runs backwards in
+    time with the arguments swapped.
+
+    Args:
+        bubble_a, bubble_b: (N,) bubble ids of the same surfels at the two frames
+            (``-1`` unbound; surfels that do not exist at a frame: ``-1`` there and
+            weight 0).
+        weights_a, weights_b: (N,) centroid weights at the two frames.
+        b: the bubble at frame A.
+        min_share: the fraction of weight that must be exceeded both ways (0.5: a
+            strict majority; an even split is a merge).
+
+    Returns:
+        The id of the continuing bubble at frame B, or ``None``.
+    """
+    wa = np.asarray(weights_a, np.float64)
+    wb = np.asarray(weights_b, np.float64)
+    sel = bubble_a == b
+    tot = wa[sel].sum()
+    if tot <= 0:
+        return None
+    ids, inv = np.unique(bubble_b[sel], return_inverse=True)
+    share = np.bincount(inv.ravel(), weights=wa[sel], minlength=len(ids)) / tot
+    k = int(np.argmax(share))
+    q = int(ids[k])
+    if q < 0 or share[k] <= min_share or (q == 0) != (b == 0):
+        return None
+    back = bubble_b == q
+    tot_b = wb[back].sum()
+    if tot_b <= 0 or wb[back & sel].sum() <= min_share * tot_b:
+        return None
+    return q

@@ -84,6 +84,19 @@ def photometric_loss(
     return loss, l1_v.sum() / C, dssim_v.sum() / C
 
 
+def photometric_terms(
+    rendered: torch.Tensor, observed: torch.Tensor, lambda_dssim: float = 0.2
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-view terms of :func:`photometric_loss` for weighted sums over views.
+
+    Returns ``(loss_v, l1_v, dssim_v)``, each (C,): ``(1−λ)·L1 + λ·(1 − SSIM)`` of every
+    view, and its two parts.
+    """
+    l1_v = (rendered - observed).abs().flatten(1).mean(dim=1)
+    dssim_v = 1.0 - ssim_map(rendered, observed).flatten(1).mean(dim=1)
+    return (1 - lambda_dssim) * l1_v + lambda_dssim * dssim_v, l1_v, dssim_v
+
+
 def normal_consistency(
     normals: torch.Tensor, normals_from_depth: torch.Tensor, alphas: torch.Tensor | None = None
 ) -> torch.Tensor:

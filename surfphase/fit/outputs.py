@@ -24,9 +24,10 @@ extent         () f8         scene extent L, metres
 =============  ============  ========================================================
 
 ``OUTDIR/bubbles.csv`` — ``frame, time_s, bubble, x, y, z, vx, vy, vz, n_surfels``:
-weighted centroids (metres) and central finite-difference velocities (m/s; one-sided at
-the first and last frame) in the lab frame, both from the same surfels (those bound to
-the bubble at that frame).
+weighted centroids (metres) and finite-difference velocities (m/s) in the lab frame,
+both from the same surfels (those bound to the bubble at that frame): central
+differences along the bubble's track, one-sided at its first and last frame (a merge or
+a new bubble starts a track; see :func:`bubble_table`).
 
 ``OUTDIR/curves.csv`` — ``frame, iter, loss, l1, dssim, normal, gamma, proj, psnr,
 n_surfels``; ``OUTDIR/summary.json`` — per-frame input-view PSNR (dB), timings
@@ -103,26 +104,50 @@ def surfel_velocities(means: np.ndarray, alive: np.ndarray, times: np.ndarray) -
 def bubble_table(
     arrays: dict[str, np.ndarray], times: np.ndarray, frames: np.ndarray
 ) -> pd.DataFrame:
-    """Per frame and bubble: centroid (m) and velocity (m/s) from the surfels bound at that
-    frame (weights ``o·s_x·s_y`` at that frame), central differences in time."""
+    """Per frame and bubble: centroid (m) and velocity (m/s) of the surfels bound at that
+    frame (weights ``o·s_x·s_y`` at that frame).
+
+    The velocity is the finite difference of the centroid of those same surfels (same
+    weights) between the neighbouring frames of the bubble's track: central where the
+    track goes on both ways, one-sided at its first and last frame, as the ground truth's
+    ``np.gradient`` of each bubble's centroid. A track ends where
+    :func:`~surfphase.fit.binding.track_continues` says so (merge, split, bubble born from
+    the nucleation region or spawned at that frame), so a velocity is never differenced
+    across a merge; a bubble whose track lasts one frame only gets the central difference
+    of its surfels.
+    """
     F = arrays["means"].shape[0]
+    alive = arrays["alive"]
+    bub = np.where(alive, arrays["bubble"], -1)
+    w = np.stack(
+        [
+            np.where(
+                alive[t],
+                binding.surfel_weights(arrays["opacity"][t], np.exp(arrays["log_scales"][t])),
+                0.0,
+            )
+            for t in range(F)
+        ]
+    )
     rows = []
     for t in range(F):
-        alive = arrays["alive"][t]
-        bub = np.where(alive, arrays["bubble"][t], -1)
-        w = binding.surfel_weights(arrays["opacity"][t], np.exp(arrays["log_scales"][t]))
-        w = np.where(alive, w, 0.0)
-        cent = binding.bubble_centroids(arrays["means"][t], bub, w)
-        a = t - 1 if t > 0 else t
-        b = t + 1 if t < F - 1 else t
+        cent = binding.bubble_centroids(arrays["means"][t], bub[t], w[t])
         for bid, c in sorted(cent.items()):
+            a = t - 1 if t > 0 else t
+            e = t + 1 if t < F - 1 else t
+            if a < t and binding.track_continues(bub[t], bub[a], w[t], w[a], bid) is None:
+                a = t
+            if e > t and binding.track_continues(bub[t], bub[e], w[t], w[e], bid) is None:
+                e = t
+            if a == e:  # a one-frame track: the surfels' own central difference
+                a, e = max(t - 1, 0), min(t + 1, F - 1)
             vel = np.full(3, np.nan)
-            if a != b:
-                sel = (bub == bid) & arrays["alive"][a] & arrays["alive"][b]
+            if a != e:
+                sel = (bub[t] == bid) & alive[a] & alive[e]
                 if sel.any():
                     ids = np.where(sel, bid, -1)
                     vd = binding.bubble_velocities(
-                        arrays["means"][a], arrays["means"][b], ids, w, times[b] - times[a]
+                        arrays["means"][a], arrays["means"][e], ids, w[t], times[e] - times[a]
                     )
                     if bid in vd:
                         vel = vd[bid]
@@ -137,7 +162,7 @@ def bubble_table(
                     "vx": vel[0],
                     "vy": vel[1],
                     "vz": vel[2],
-                    "n_surfels": int((bub == bid).sum()),
+                    "n_surfels": int((bub[t] == bid).sum()),
                 }
             )
     cols = ["frame", "time_s", "bubble", "x", "y", "z", "vx", "vy", "vz", "n_surfels"]

@@ -5,8 +5,9 @@ Per frame ``t`` (in order):
 
 1. initialise — frame 0: surfels on the visual hull of the masks
    (:mod:`surfphase.fit.init`); later frames: the previous frame's surfels, each
-   bubble's surfels advected by its velocity (:mod:`surfphase.fit.binding`), plus new
-   surfels for bubbles that appear;
+   bubble's surfels advected by its velocity (:mod:`surfphase.fit.binding`) and then
+   shifted rigidly, one translation per bubble, to fit the new frame
+   (:mod:`surfphase.fit.register`), plus new surfels for bubbles that appear;
 2. optimise ``λ_app Σ_c (L1 + D-SSIM) + λ_geo (w_n L_normal + w_γ L_γ + w_p L_proj)``
    with Adam (ε = 1e-15); densify and prune at frame 0 only (a strategy object);
 3. bind every surfel to a bubble through the masks, and compute the bubble velocities
@@ -45,7 +46,7 @@ import torch
 
 from surfphase.cameras import Camera, load_cameras
 from surfphase.device import resolve_device
-from surfphase.fit import binding, init, losses
+from surfphase.fit import binding, init, losses, register
 from surfphase.fit.densify import Densify2DGS, NoDensify, append_surfels
 from surfphase.fit.model import HALF_OPACITY_GF, SurfelModel
 from surfphase.io import atomic_path
@@ -106,6 +107,10 @@ DEFAULTS: dict = {
     # -- bubble guidance --------------------------------------------------------------
     "v_init_nucleation": [0.03, 0.03, 0.0],  # m/s, lab frame: bubble 0 before history
     "v_init_bubble": [0.07, 0.3, 0.0],  # m/s, lab frame: other bubbles before history
+    # After the advection, one rigid translation per bubble (ids ≥ 1) is fitted to the
+    # new frame photometrically (surfphase.fit.register) before the per-surfel steps.
+    "register_steps": 15,  # Adam steps of that translation fit (0: off)
+    "lr_register": 0.01,  # its step size, units of L (decays to 1/10 over the steps)
     # -- outputs ----------------------------------------------------------------------
     "background": "images",  # "images": per-view temporal median of background pixels;
     # "constant": one colour, the median of those; or a number in [0, 1]
@@ -287,9 +292,18 @@ def fit_frame(
     frame: int,
     generator: torch.Generator,
     geo_from: int = 0,
+    view_schedule=None,
+    geo_views: int | None = None,
 ) -> list[dict]:
     """Optimise ``model`` on one frame's (C, H, W, D) ``observed`` images. Returns the
-    logged curve rows."""
+    logged curve rows.
+
+    Stage 2 (:mod:`surfphase.fit.stage2`) passes ``view_schedule(it) → (idx, weights)``:
+    the views rendered at step ``it`` ((K,) long, the first ``geo_views`` of them the
+    input views) and their photometric weights ((K,)); the geometry losses and the
+    logged L1/D-SSIM/PSNR then use those first ``geo_views`` views only. Without a
+    schedule every view is rendered with weight 1 (stage 1).
+    """
     C, H, W, D = observed.shape
     opt = make_optimizer(model, p)
     state = strategy.initialize_state(model.n, model.means.device)
@@ -300,19 +314,32 @@ def fit_frame(
         for g in opt.param_groups:
             if g["name"] == "means":
                 g["lr"] = base_lr * p["lr_means_decay"] ** frac
-        rgb, alpha, meta = _render(model, viewmats, Ks, W, H, background)
-        strategy.before_backward(meta)
-        app, l1v, dssim = losses.photometric_loss(rgb, observed, p["lambda_dssim"])
+        if view_schedule is None:
+            vm, ks, obs = viewmats, Ks, observed
+            rgb, alpha, meta = _render(model, viewmats, Ks, W, H, background)
+            strategy.before_backward(meta)
+            app, l1v, dssim = losses.photometric_loss(rgb, observed, p["lambda_dssim"])
+            geo = meta
+        else:
+            idx, w = view_schedule(it)
+            vm, ks, obs = viewmats[idx], Ks[idx], observed[idx]
+            rgb, alpha, meta = _render(model, vm, ks, W, H, background[idx])
+            strategy.before_backward(meta)
+            lv, l1_v, dssim_v = losses.photometric_terms(rgb, obs, p["lambda_dssim"])
+            app = (w.to(lv) * lv).sum()
+            ng = int(geo_views)
+            l1v, dssim = l1_v[:ng].mean(), dssim_v[:ng].mean()
+            vm, ks, obs, rgb, alpha = vm[:ng], ks[:ng], obs[:ng], rgb[:ng], alpha[:ng]
+            geo = {k: meta[k][:ng] for k in ("normals_camera", "normals_from_depth")}
+            geo["depth_expected"] = meta["depth_expected"][:ng]
         loss = p["lambda_app"] * app
         geo_on = it >= geo_from
         ln = lg = lp = torch.zeros(())
         if geo_on:
-            ln = losses.normal_consistency(
-                meta["normals_camera"], meta["normals_from_depth"], alpha
-            )
+            ln = losses.normal_consistency(geo["normals_camera"], geo["normals_from_depth"], alpha)
             pts = model.zero_level_points()
             lp = losses.projection_loss(
-                pts, meta["depth_expected"], viewmats, Ks, model.extent, p["proj_threshold"]
+                pts, geo["depth_expected"], vm, ks, model.extent, p["proj_threshold"]
             )
             if model.use_sdf:
                 sdf = model.params["sdf"]
@@ -345,7 +372,7 @@ def fit_frame(
                     "normal": float(ln.detach()),
                     "gamma": float(lg.detach()),
                     "proj": float(lp.detach()),
-                    "psnr": losses.psnr(rgb, observed),
+                    "psnr": losses.psnr(rgb, obs),
                     "n_surfels": model.n,
                 }
             )
@@ -539,6 +566,9 @@ def run_fit(
     params: Mapping | None = None,
     device: str = "auto",
     checkpoint_dir: str | os.PathLike | None = None,
+    initial_model: SurfelModel | None = None,
+    extra_views=None,
+    key_extra: str = "",
 ) -> dict:
     """Fit one session; write ``out_dir`` (see :mod:`surfphase.fit.outputs`).
 
@@ -550,6 +580,12 @@ def run_fit(
         device: ``auto``, ``cpu`` or ``cuda``.
         checkpoint_dir: where per-frame checkpoints go (default ``<out_dir>.ckpt``);
             an existing checkpoint of the same inputs and parameters is resumed.
+        initial_model: frame 0 starts from these surfels instead of the visual hull
+            (stage 2: the stage-1 surfels of frame 0).
+        extra_views: stage 2's supervision beside the input views
+            (:class:`surfphase.fit.stage2.ExtraViews`: ``cameras``, ``backgrounds``,
+            ``n_frames``, ``images(t)``, ``schedule(t, n_inputs)``).
+        key_extra: what else a checkpoint must match (stage 2: a hash of its inputs).
 
     Returns:
         The summary dict (also written to ``out_dir/summary.json``).
@@ -566,7 +602,11 @@ def run_fit(
     n_frames = data.n_frames if p["frames"] is None else min(int(p["frames"]), data.n_frames)
     if n_frames < 1:
         raise ValueError(f"session {data.session}: no frames to fit")
+    if extra_views is not None:
+        n_frames = min(n_frames, int(extra_views.n_frames))
     key = _run_key(data, {**p, "frames": n_frames})
+    if key_extra:
+        key = hashlib.sha256((key + key_extra).encode()).hexdigest()
     viewmats, Ks = camera_tensors(data.cameras, dev, dtype)
 
     state, records = _load_checkpoint(ckpt, key)
@@ -575,7 +615,10 @@ def run_fit(
         ckpt.mkdir(parents=True, exist_ok=True)
         for old in ckpt.glob("*.pt"):
             old.unlink()
-        model = _initial_model(data, p, gen, dtype)
+        if initial_model is None:
+            model = _initial_model(data, p, gen, dtype)
+        else:
+            model = SurfelModel(initial_model.state(), initial_model.extent, p["use_sdf"])
         background = _backgrounds(data, n_frames, p)
         start = 0
     else:
@@ -585,11 +628,18 @@ def run_fit(
         start = state["next_frame"]
     model.params = {k: v.detach().to(dev).requires_grad_(True) for k, v in model.params.items()}
     bg_t = torch.as_tensor(background, dtype=dtype, device=dev)
+    fit_vm, fit_Ks, fit_bg = viewmats, Ks, bg_t
+    if extra_views is not None:
+        ev, ek = camera_tensors(extra_views.cameras, dev, dtype)
+        fit_vm, fit_Ks = torch.cat([viewmats, ev]), torch.cat([Ks, ek])
+        ebg = torch.as_tensor(extra_views.backgrounds, dtype=dtype, device=dev)
+        fit_bg = torch.cat([bg_t, ebg])
 
     for t in range(start, n_frames):
         t0 = time.perf_counter()
         labels = data.labels(t)
         spawned: list[int] = []
+        registered: dict[int, np.ndarray] = {}
         if t > 0:
             if p["guidance"]:
                 vb, vs = _advect_velocities(records, data, p)
@@ -599,6 +649,16 @@ def run_fit(
                 )
                 with torch.no_grad():
                     model.params["means"].data.copy_(torch.as_tensor(new_means, dtype=dtype))
+                registered = register.register_bubbles(
+                    model,
+                    records[-1]["bubble"],
+                    torch.as_tensor(data.images(t), device=dev),
+                    viewmats,
+                    Ks,
+                    bg_t,
+                    steps=int(p["register_steps"]),
+                    lr=p["lr_register"] * model.extent,
+                )
             model.params = {k: v.detach().cpu() for k, v in model.params.items()}
             spawned = _spawn_bubbles(model, data, t, p, gen)
             model.params = {
@@ -625,9 +685,17 @@ def run_fit(
         else:
             iters, strategy, geo_from = int(p["iters_next"]), NoDensify(), 0
         t_opt = time.perf_counter()
-        rows = fit_frame(
-            model, observed, viewmats, Ks, bg_t, p, iters, strategy, t, gen, geo_from=geo_from
-        )
+        if extra_views is None:
+            rows = fit_frame(
+                model, observed, viewmats, Ks, bg_t, p, iters, strategy, t, gen, geo_from=geo_from
+            )
+        else:
+            nc = len(data.cameras)
+            obs_all = torch.cat([observed, torch.as_tensor(extra_views.images(t), device=dev)])
+            rows = fit_frame(
+                model, obs_all, fit_vm, fit_Ks, fit_bg, p, iters, strategy, t, gen,
+                geo_from=geo_from, view_schedule=extra_views.schedule(t, nc), geo_views=nc,
+            )  # fmt: skip
         t_done = time.perf_counter()
         with torch.no_grad():
             rgb, _, _ = _render(model, viewmats, Ks, data.width, data.height, bg_t)
@@ -648,6 +716,7 @@ def run_fit(
                 "psnr": view_psnr,
                 "iters": iters,
                 "spawned": spawned,
+                "registered": registered,
                 "seconds": time.perf_counter() - t0,
                 "seconds_optimise": t_done - t_opt,
             }

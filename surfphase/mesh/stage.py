@@ -11,13 +11,26 @@ input cameras and ``n_orbit`` orbit views about the surfels' mean (30° steps ab
 lab +y axis from the first input camera), fused into a truncated signed distance volume
 (:mod:`surfphase.mesh.fuse`), meshed by marching cubes and cleaned with pymeshlab
 (:mod:`surfphase.mesh.cleanup`).
+
+Resuming and windows: every finished frame is saved at once (``<frame:06d>.npz``:
+vertices, faces, velocities, keyed by :func:`mesh_key`) in a side folder,
+``OUT.partial/``; a killed job, rerun, reads those back instead of meshing them again,
+and ``OUT/`` is written into a temporary folder and renamed, so it appears whole or not
+at all. A long session can be meshed by independent jobs, one per window of frames
+(:func:`run_mesh_window`, :mod:`surfphase.mesh.windows`); :func:`gather_mesh` then
+writes the same ``OUT/`` as a single job (speed colours need the whole session).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import shutil
+import tempfile
 import time
+import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -25,10 +38,11 @@ from scipy.spatial import cKDTree
 
 from surfphase.cameras import Camera, load_cameras, orbit_cameras
 from surfphase.fit.outputs import load_surfels
-from surfphase.io import atomic_write_json
+from surfphase.io import atomic_path, atomic_write_json
 from surfphase.mesh.cleanup import clean_mesh, mesh_stats
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
+from surfphase.mesh.windows import window_positions
 
 DEFAULTS: dict = {
     "voxels": 64,  # voxels along the longest side of the surfels' bounding box
@@ -120,21 +134,61 @@ def mesh_frame(
     )
 
 
-def run_mesh(
-    fit_dir: str | os.PathLike,
-    ingest_dir: str | os.PathLike,
-    out_dir: str | os.PathLike,
-    params: dict | None = None,
-    device: str = "auto",
-) -> dict:
-    """Mesh every fitted frame of a session; write ``OUT/<frame:06d>.ply`` and
-    ``OUT/mesh.json`` (see the module docstring); return the mesh.json content."""
+def _code_fingerprint() -> str:
+    """Hash of the sources a frame's mesh depends on (mesh and renderer, cameras)."""
+    root = Path(__file__).resolve().parents[1]
+    files = [root / "cameras.py"]
+    for pkg in ("mesh", "render"):
+        files += sorted((root / pkg).rglob("*.py"))
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def _file_hash(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def mesh_key(surfels_path: Path, cameras_path: Path, p: dict, device: str) -> str:
+    """What a finished frame's checkpoint must match to be reused: the fit and camera
+    files (content), the parameters that shape a frame's mesh, the device and the code.
+
+    ``speed_max`` and ``frames`` are left out: they choose colours and frames, not the
+    mesh of a frame, so changing them reuses the frames already meshed.
+    """
+    shape = {k: v for k, v in p.items() if k not in ("speed_max", "frames")}
+    h = hashlib.sha256(json.dumps(shape, sort_keys=True, default=str).encode())
+    for part in (device, _file_hash(surfels_path), _file_hash(cameras_path), _code_fingerprint()):
+        h.update(part.encode())
+    return h.hexdigest()
+
+
+@dataclass
+class _Session:
+    """One session's fitted surfels and cameras, ready to mesh."""
+
+    surfels: dict
+    inputs: list[Camera]
+    session: str | None
+    p: dict
+    device: str
+    key: str
+    picks: list[int]  # positions (0-based) in surfels.npz to mesh, in order
+
+
+def _open_session(fit_dir: Path, ingest_dir: Path, params: dict | None, device: str) -> _Session:
     from surfphase.device import resolve_device
 
     p = mesh_params(params)
     dev = str(resolve_device(device))
-    fit_dir, ingest_dir, out_dir = Path(fit_dir), Path(ingest_dir), Path(out_dir)
-    surfels = load_surfels(fit_dir / "surfels.npz")
+    surfels_path = fit_dir / "surfels.npz"
+    surfels = load_surfels(surfels_path)
     cam_path = ingest_dir / "cameras.json"
     if not cam_path.exists():
         raise FileNotFoundError(f"{cam_path}: no cameras.json in the ingest folder")
@@ -149,60 +203,274 @@ def run_mesh(
     meta_path = ingest_dir / "meta.json"
     if meta_path.exists():
         session = json.loads(meta_path.read_text()).get("session")
-
     n_frames = surfels["alive"].shape[0]
-    picks = range(n_frames) if p["frames"] is None else [int(t) for t in p["frames"]]
+    picks = list(range(n_frames)) if p["frames"] is None else [int(t) for t in p["frames"]]
     for t in picks:
         if not 0 <= t < n_frames:
             raise ValueError(f"{fit_dir}: frame position {t} outside 0..{n_frames - 1}")
-    meshes = []
-    for t in picks:
-        t0 = time.perf_counter()
-        a = surfels["alive"][t]
-        if a.sum() < 4:
-            verts, faces = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-        else:
-            verts, faces = mesh_frame(
-                surfels["means"][t][a],
-                surfels["quats"][t][a],
-                surfels["log_scales"][t][a],
-                surfels["opacity"][t][a],
-                inputs,
-                p,
-                dev,
-            )
-            vel = vertex_velocities(verts, surfels["means"][t][a], surfels["velocity"][t][a])
-        if len(verts) == 0:
-            vel = np.zeros((0, 3))
-        meshes.append((t, verts, faces, vel, time.perf_counter() - t0))
+    key = mesh_key(surfels_path, cam_path, p, dev)
+    return _Session(surfels, inputs, session, p, dev, key, picks)
 
+
+def _frame_file(work: Path, frame: int) -> Path:
+    return work / f"{frame:06d}.npz"
+
+
+def _load_frame(path: Path, key: str) -> dict | None:
+    """A finished frame's checkpoint, or None if absent, unreadable or from another run."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path) as z:
+            if str(z["key"]) != key:
+                return None
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+        return None
+
+
+def _frame_ranges(frames: list[int]) -> str:
+    """Sorted frame numbers as runs, e.g. ``[3, 4, 5, 9]`` → ``"3-5, 9"`` (short logs)."""
+    runs: list[list[int]] = []
+    for f in frames:
+        if runs and f == runs[-1][1] + 1:
+            runs[-1][1] = f
+        else:
+            runs.append([f, f])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]:
+    """Mesh the fitted frames at ``positions``, one checkpoint per frame in ``work``.
+
+    A frame whose checkpoint matches the session's key is read back, not recomputed, so
+    a killed job resumes where it stopped. Returns the frames' records in order: frame,
+    position, verts (V, 3) m, faces (F, 3), velocity (V, 3) m/s, seconds.
+    """
+    work.mkdir(parents=True, exist_ok=True)
+    surf = s.surfels
+    frames = [int(surf["frame"][t]) for t in positions]
+    records: dict[int, dict] = {}
+    for t, frame in zip(positions, frames, strict=True):
+        rec = _load_frame(_frame_file(work, frame), s.key)
+        if rec is not None:
+            records[t] = rec
+    if records:
+        done = sorted(int(r["frame"]) for r in records.values())
+        print(
+            f"mesh {s.session}: {len(records)} of {len(positions)} frames already meshed "
+            f"in {work}, resuming: frames {_frame_ranges(done)}",
+            flush=True,
+        )
+    todo = [t for t in positions if t not in records]
+    for i, t in enumerate(todo):
+        t0 = time.perf_counter()
+        a = surf["alive"][t]
+        verts, faces = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+        vel = np.zeros((0, 3))
+        if a.sum() >= 4:
+            verts, faces = mesh_frame(
+                surf["means"][t][a],
+                surf["quats"][t][a],
+                surf["log_scales"][t][a],
+                surf["opacity"][t][a],
+                s.inputs,
+                s.p,
+                s.device,
+            )
+            if len(verts):
+                vel = vertex_velocities(verts, surf["means"][t][a], surf["velocity"][t][a])
+        frame = int(surf["frame"][t])
+        rec = {
+            "key": np.array(s.key),
+            "frame": np.int64(frame),
+            "position": np.int64(t),
+            "verts": np.asarray(verts, np.float64),
+            "faces": np.asarray(faces, np.int64).reshape(-1, 3),
+            "velocity": np.asarray(vel, np.float64).reshape(-1, 3),
+            "seconds": np.float64(time.perf_counter() - t0),
+        }
+        with atomic_path(_frame_file(work, frame)) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, **rec)
+        records[t] = rec
+        print(
+            f"mesh {s.session}: frame {frame} meshed ({i + 1}/{len(todo)} to do), "
+            f"{len(verts)} vertices, {float(rec['seconds']):.1f} s",
+            flush=True,
+        )
+    return [records[t] for t in positions]
+
+
+def _replace_dir(tmp: Path, out: Path) -> None:
+    """Put the finished folder ``tmp`` at ``out`` by renames (whole or not at all)."""
+    if out.exists() and not (out.is_dir() and not any(out.iterdir())):
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        os.replace(out, old)
+        os.replace(tmp, out)
+        shutil.rmtree(old)
+    else:
+        os.replace(tmp, out)
+
+
+def _temp_dir(out: Path) -> Path:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)
+    return tmp
+
+
+def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict) -> dict:
+    """Write ``OUT/<frame>.ply`` and ``OUT/mesh.json`` of ``records``, whole or not at all."""
     if p["speed_max"] == "session":
-        speeds = [np.linalg.norm(m[3], axis=1).max() for m in meshes if len(m[3])]
+        speeds = [
+            np.linalg.norm(r["velocity"], axis=1).max() for r in records if len(r["velocity"])
+        ]
         vmax = float(max(speeds)) if speeds and max(speeds) > 0 else 1.0
     else:
         vmax = float(p["speed_max"])
-    rows = []
-    for t, verts, faces, vel, secs in meshes:
-        t1 = time.perf_counter()
-        frame = int(surfels["frame"][t])
-        colors = speed_colors(np.linalg.norm(vel, axis=1), vmax)
-        write_mesh_ply(out_dir / f"{frame:06d}.ply", verts, faces, vel, colors)
-        rows.append(
-            {
-                "frame": frame,
-                "vertices": len(verts),
-                "faces": len(faces),
-                **mesh_stats(faces, len(verts)),
-                "seconds": secs + time.perf_counter() - t1,
-            }
-        )
-    summary = {
-        "session": session,
-        "units": "metres, m/s",
-        "speed_max": vmax,
-        "device": dev,
-        "params": p,
-        "frames": rows,
-    }
-    atomic_write_json(out_dir / "mesh.json", summary)
+    tmp = _temp_dir(out)
+    try:
+        rows = []
+        for r in records:
+            frame, verts, faces, vel = int(r["frame"]), r["verts"], r["faces"], r["velocity"]
+            colors = speed_colors(np.linalg.norm(vel, axis=1), vmax)
+            write_mesh_ply(tmp / f"{frame:06d}.ply", verts, faces, vel, colors)
+            rows.append(
+                {
+                    "frame": frame,
+                    "vertices": len(verts),
+                    "faces": len(faces),
+                    **mesh_stats(faces, len(verts)),
+                    "seconds": float(r["seconds"]),
+                }
+            )
+        summary = {
+            "session": session,
+            "units": "metres, m/s",
+            "speed_max": vmax,
+            "device": device,
+            "params": p,
+            "frames": rows,
+        }
+        atomic_write_json(tmp / "mesh.json", summary)
+        _replace_dir(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
     return summary
+
+
+def run_mesh(
+    fit_dir: str | os.PathLike,
+    ingest_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    params: dict | None = None,
+    device: str = "auto",
+    work_dir: str | os.PathLike | None = None,
+) -> dict:
+    """Mesh every fitted frame of a session; write ``OUT/<frame:06d>.ply`` and
+    ``OUT/mesh.json`` (see the module docstring); return the mesh.json content.
+
+    Each finished frame is checkpointed in ``work_dir`` (default ``<out_dir>.partial``,
+    removed at the end): a killed run, rerun, meshes only the frames not yet finished.
+    ``out_dir`` appears whole (renamed from a temporary folder) or not at all.
+    """
+    out_dir = Path(out_dir)
+    work = Path(work_dir) if work_dir else out_dir.parent / (out_dir.name + ".partial")
+    s = _open_session(Path(fit_dir), Path(ingest_dir), params, device)
+    records = _mesh_positions(s, s.picks, work)
+    summary = _write_meshes(records, out_dir, s.session, s.device, s.p)
+    shutil.rmtree(work, ignore_errors=True)
+    return summary
+
+
+def run_mesh_window(
+    fit_dir: str | os.PathLike,
+    ingest_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    index: int,
+    size: int,
+    params: dict | None = None,
+    device: str = "auto",
+) -> dict:
+    """Mesh window ``index`` (0-based) of ``size`` consecutive fitted frames.
+
+    Writes ``OUT/<frame:06d>.npz`` (the raw meshes: verts, faces, velocity) and
+    ``OUT/window.json`` (key, session, device, parameters, the session's frame count,
+    the window's positions and frames), for :func:`gather_mesh`. Frames are checkpointed
+    in ``<out_dir>.partial``, which becomes ``out_dir`` by a rename when the window is
+    done. A window past the last frame is empty. Returns the window.json content.
+    """
+    out_dir = Path(out_dir)
+    work = out_dir.parent / (out_dir.name + ".partial")
+    s = _open_session(Path(fit_dir), Path(ingest_dir), params, device)
+    positions = window_positions(s.picks, index, size)
+    records = _mesh_positions(s, positions, work)
+    keep = {_frame_file(work, int(r["frame"])).name for r in records}
+    for f in work.glob("*.npz"):
+        if f.name not in keep:  # a frame of another window size or run
+            f.unlink()
+    info = {
+        "key": s.key,
+        "session": s.session,
+        "device": s.device,
+        "params": s.p,
+        "n_fitted": int(s.surfels["alive"].shape[0]),
+        "window": int(index),
+        "size": int(size),
+        "positions": positions,
+        "frames": [int(r["frame"]) for r in records],
+    }
+    atomic_write_json(work / "window.json", info)
+    _replace_dir(work, out_dir)
+    return info
+
+
+def gather_mesh(window_dirs: list[str | os.PathLike], out_dir: str | os.PathLike) -> dict:
+    """Gather window folders (:func:`run_mesh_window`) into ``OUT/<frame:06d>.ply`` and
+    ``OUT/mesh.json``: the same files a single :func:`run_mesh` job writes.
+
+    Raises ValueError (naming the folder) when the windows come from different runs or do
+    not cover every fitted frame exactly once.
+    """
+    infos = []
+    for d in map(Path, window_dirs):
+        path = d / "window.json"
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: not a mesh window folder (no window.json)")
+        infos.append((d, json.loads(path.read_text())))
+    if not infos:
+        raise ValueError("mesh gather: no window folders given")
+    ref_dir, ref = infos[0]
+    for d, info in infos[1:]:
+        for k in ("key", "params", "n_fitted", "device"):
+            if info[k] != ref[k]:
+                raise ValueError(
+                    f"{d / 'window.json'}: {k} differs from {ref_dir / 'window.json'} "
+                    "(windows of different runs)"
+                )
+    p = mesh_params(ref["params"])
+    picks = list(range(ref["n_fitted"])) if p["frames"] is None else [int(t) for t in p["frames"]]
+    by_pos: dict[int, tuple[Path, int]] = {}
+    for d, info in infos:
+        for t, frame in zip(info["positions"], info["frames"], strict=True):
+            if t in by_pos:
+                raise ValueError(f"{d}: frame position {t} is also in window {by_pos[t][0]}")
+            by_pos[t] = (d, frame)
+    missing = [t for t in picks if t not in by_pos]
+    if missing or len(by_pos) != len(picks):
+        raise ValueError(
+            f"mesh gather for session {ref['session']}: the windows cover {len(by_pos)} of "
+            f"{len(picks)} fitted frames (missing positions {missing[:10]}); the window "
+            "count comes from the sessions sheet's frames column or the ingest's meta.json"
+        )
+    records = []
+    for t in picks:
+        d, frame = by_pos[t]
+        rec = _load_frame(_frame_file(d, frame), ref["key"])
+        if rec is None:
+            raise ValueError(f"{_frame_file(d, frame)}: missing or from another run")
+        records.append(rec)
+    return _write_meshes(records, Path(out_dir), ref["session"], ref["device"], p)

@@ -9,9 +9,21 @@ Sized for two CPU cores: spatial 3×3 convolutions run per frame (``Conv2d`` on 
 folded into the batch, much faster on CPUs than ``Conv3d``), temporal mixing is a
 3-tap convolution along time, and training uses random ``crop × crop`` windows of
 ``frames`` consecutive frames at the clips' native pixel scale. The network is fully
-convolutional, so it refines whole frames of any size (padded to a multiple of 4);
-along time, videos longer than ``frames`` are refined in overlapping chunks that
-share one noise draw and are cross-faded.
+convolutional, so it refines whole frames of any size (padded to a multiple of
+``patch``·2^(levels−1)); along time, videos longer than ``frames`` are refined in
+overlapping chunks that share one noise draw and are cross-faded.
+
+What makes its samples look like a boiling video rather than a texture of dark blobs
+(measured in BENCHMARKS.md, "prior"):
+
+* ``position``: the network sees each row's height in the frame (an extra input
+  channel, −1 at the top, 1 at the bottom; a crop sees its own rows' heights), so it
+  learns that the dark heated surface lies at the bottom and bubbles above it. Without
+  it, a network trained on crops spreads the plate's dark texture everywhere.
+* ``patch`` = 2: the U-Net runs on 2×2 space-to-depth frames (pixel-unshuffle), which
+  doubles its receptive field in pixels and lets it be twice as wide for less compute.
+* ``time_dist`` = ``tilted``: training times with density 0.5 + t, more of them at high
+  noise, where a generation from noise decides where the bubbles are.
 """
 
 from __future__ import annotations
@@ -37,12 +49,16 @@ DEFAULT_PARAMS: dict = {
     "frames": 8,  # frames per training window and refinement chunk
     "overlap": 2,  # frames shared by consecutive refinement chunks
     "crop": 32,  # training crop, pixels (native scale)
-    "channels": [16, 32, 64],  # U-Net widths per level (each level halves H and W)
-    "steps": 600,  # optimiser steps
+    "channels": [32, 64, 96],  # U-Net widths per level (each level halves H and W)
+    "patch": 2,  # pixel-unshuffle factor at the input (2: the U-Net runs at half resolution)
+    "position": True,  # an input channel with each row's height in the frame, −1 … 1
+    "steps": 800,  # optimiser steps
     "batch": 8,  # windows per step
     "lr": 1e-3,  # AdamW learning rate (cosine decay to 5 %, 20-step warm-up)
+    "time_dist": "tilted",  # training times: uniform | logit_normal | tilted (density 0.5 + t)
     "ema": 0.995,  # decay of the weight average used for sampling
     "sample_steps": 24,  # Euler steps of a full (strength 1) generation
+    "sampler": "euler",  # euler | heun (2nd order: two network calls per step but the last)
     "seed": 0,
 }
 
@@ -72,6 +88,13 @@ class _TemporalConv(nn.Module):
         return self.conv(x.reshape(b, c, t, h * w)).reshape(b, -1, t, h, w)
 
 
+def _per_frame(op, x: torch.Tensor, *args) -> torch.Tensor:
+    """Apply a 2D image op to every frame: (B, C, T, H, W) → (B, C', T, H', W')."""
+    b, c, t, h, w = x.shape
+    y = op(x.transpose(1, 2).reshape(b * t, c, h, w), *args)
+    return y.reshape(b, t, *y.shape[1:]).transpose(1, 2)
+
+
 class _ResBlock(nn.Module):
     """Residual (2+1)D block with the time embedding applied as scale and shift."""
 
@@ -99,12 +122,20 @@ class VideoUNet(nn.Module):
     H and W must be multiples of 2^(levels − 1); T is free (temporal convolutions).
     """
 
-    def __init__(self, channels: list[int] | tuple[int, ...] = (16, 32, 64), emb: int = 64):
+    def __init__(
+        self,
+        channels: list[int] | tuple[int, ...] = (16, 32, 64),
+        emb: int = 64,
+        patch: int = 1,
+        position: bool = False,
+    ):
         super().__init__()
         ch = list(channels)
         self.emb_dim = emb
+        self.patch = int(patch)
+        self.position = bool(position)
         self.emb = nn.Sequential(nn.Linear(emb, 2 * emb), nn.SiLU(), nn.Linear(2 * emb, emb))
-        self.inp = _SpatialConv(1, ch[0])
+        self.inp = _SpatialConv((1 + self.position) * self.patch**2, ch[0])
         self.down = nn.ModuleList()
         self.pool = nn.ModuleList()
         c = ch[0]
@@ -119,20 +150,31 @@ class VideoUNet(nn.Module):
             self.up.append(_ResBlock(c + co, co, emb))
             c = co
         self.out_norm = nn.GroupNorm(min(8, c), c)
-        self.out = _SpatialConv(c, 1)
+        self.out = _SpatialConv(c, self.patch**2)
         nn.init.zeros_(self.out.conv.weight)
         nn.init.zeros_(self.out.conv.bias)
 
     @property
     def multiple(self) -> int:
         """H and W must be multiples of this."""
-        return 2 ** len(self.pool)
+        return self.patch * 2 ** len(self.pool)
 
-    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, x: torch.Tensor, t: torch.Tensor, rows: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``rows``: (B, H) height of each image row in its frame, −1 top … 1 bottom
+        (required when the network was built with ``position``)."""
         half = self.emb_dim // 2
         freqs = torch.exp(-math.log(1000.0) * torch.arange(half, device=x.device) / half)
         ang = 1000.0 * t[:, None].to(x.dtype) * freqs[None]
         e = self.emb(torch.cat([ang.sin(), ang.cos()], dim=1))
+        if self.position:
+            if rows is None or rows.shape != (x.shape[0], x.shape[3]):
+                raise ValueError("VideoUNet: position needs rows of shape (B, H)")
+            y = rows.to(x.dtype)[:, None, None, :, None].expand(-1, 1, x.shape[2], -1, x.shape[4])
+            x = torch.cat([x, y], dim=1)
+        if self.patch > 1:  # (B, 1, T, H, W) → (B, p², T, H/p, W/p), lossless
+            x = _per_frame(F.pixel_unshuffle, x, self.patch)
         h = self.inp(x)
         skips = []
         for i, block in enumerate(self.down):
@@ -146,7 +188,17 @@ class VideoUNet(nn.Module):
             if h.shape[-2:] != skip.shape[-2:]:
                 h = F.interpolate(h, size=skip.shape[2:], mode="nearest")
             h = block(torch.cat([h, skip], dim=1), e)
-        return self.out(F.silu(self.out_norm(h)))
+        y = self.out(F.silu(self.out_norm(h)))
+        if self.patch > 1:  # back to (B, 1, T, H, W)
+            y = _per_frame(F.pixel_shuffle, y, self.patch)
+        return y
+
+
+def row_heights(height: int, n: int | None = None) -> torch.Tensor:
+    """(n,) float32 heights of rows 0 … n−1 in a frame of ``height`` rows: −1 at the top
+    row, 1 at the bottom one (rows past the bottom, e.g. padding, continue the ramp)."""
+    n = height if n is None else n
+    return torch.arange(n, dtype=torch.float32) * (2.0 / max(height - 1, 1)) - 1.0
 
 
 class EmbeddedPrior:
@@ -166,7 +218,12 @@ class EmbeddedPrior:
         self.params = {**DEFAULT_PARAMS, **(params or {})}
         self.device = torch.device(device)
         torch.manual_seed(int(self.params["seed"]))
-        self.model = VideoUNet(self.params["channels"]).to(self.device)
+        self.model = VideoUNet(
+            self.params["channels"],
+            patch=int(self.params["patch"]),
+            position=bool(self.params["position"]),
+        )
+        self.model = self.model.to(self.device)
         self.ema = copy.deepcopy(self.model).eval().requires_grad_(False)
 
     # ------------------------------------------------------------------ training
@@ -183,9 +240,11 @@ class EmbeddedPrior:
             unknown = set(params) - set(DEFAULT_PARAMS)
             if unknown:
                 raise ValueError(f"embedded prior: unknown parameters {sorted(unknown)}")
-            arch = {"channels"} & {k for k in params if params[k] != self.params[k]}
+            arch = {"channels", "patch", "position"} & {
+                k for k in params if params[k] != self.params[k]
+            }
             if arch:
-                raise ValueError("embedded prior: set 'channels' when creating the prior")
+                raise ValueError(f"embedded prior: set {sorted(arch)} when creating the prior")
             self.params.update(params)
         p = self.params
         T, crop = int(p["frames"]), int(p["crop"])
@@ -212,12 +271,13 @@ class EmbeddedPrior:
         self.model.train()
         losses, t0 = [], time.perf_counter()
         for step in range(steps):
-            x0 = torch.stack([self._window(data, rng, T, crop) for _ in range(batch)])
-            x0 = x0[:, None].to(self.device)  # (B, 1, T, crop, crop)
+            wins = [self._window(data, rng, T, crop) for _ in range(batch)]
+            x0 = torch.stack([w for w, _ in wins])[:, None].to(self.device)  # (B, 1, T, c, c)
+            rows = torch.stack([r for _, r in wins]).to(self.device)  # (B, crop)
             noise = torch.randn(x0.shape, generator=gen).to(self.device)
-            t = torch.rand(batch, generator=gen).to(self.device)
+            t = self._train_times(batch, gen).to(self.device)
             xt = (1 - t[:, None, None, None, None]) * x0 + t[:, None, None, None, None] * noise
-            loss = F.mse_loss(self.model(xt, t), noise - x0)
+            loss = F.mse_loss(self.model(xt, t, rows=rows), noise - x0)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
@@ -239,9 +299,25 @@ class EmbeddedPrior:
             "losses": [round(v, 5) for v in losses],
         }
 
+    def _train_times(self, n: int, gen: torch.Generator) -> torch.Tensor:
+        """(n,) training times in (0, 1): uniform, or logit-normal (more weight mid-path,
+        where the layout of the bubbles is decided; Esser et al., 2024)."""
+        dist = self.params["time_dist"]
+        if dist == "uniform":
+            return torch.rand(n, generator=gen)
+        if dist == "logit_normal":
+            return torch.sigmoid(torch.randn(n, generator=gen))
+        if dist == "tilted":  # density 0.5 + t: half uniform, half ∝ t (more high noise)
+            u, pick = torch.rand(n, generator=gen), torch.rand(n, generator=gen)
+            return torch.where(pick < 0.5, u, u.sqrt())
+        raise ValueError(
+            f"embedded prior: time_dist must be uniform, logit_normal or tilted, not {dist!r}"
+        )
+
     @staticmethod
     def _window(data: list[torch.Tensor], rng: np.random.Generator, T: int, crop: int):
-        """A random (T, crop, crop) window of a random clip, mirrored left-right at random.
+        """A random (T, crop, crop) window of a random clip, mirrored left-right at random,
+        and the (crop,) heights of its rows in the clip's frame (:func:`row_heights`).
 
         No vertical flips or time reversal: bubbles rise, and the prior should know it.
         """
@@ -250,7 +326,8 @@ class EmbeddedPrior:
         y = int(rng.integers(c.shape[1] - crop + 1))
         x = int(rng.integers(c.shape[2] - crop + 1))
         w = c[a : a + T, y : y + crop, x : x + crop]
-        return w.flip(-1) if rng.random() < 0.5 else w
+        rows = row_heights(c.shape[1])[y : y + crop]
+        return (w.flip(-1) if rng.random() < 0.5 else w), rows
 
     @torch.no_grad()
     def _update_ema(self, decay: float) -> None:
@@ -264,11 +341,20 @@ class EmbeddedPrior:
         m = self.ema.multiple
         h, w = x.shape[-2:]
         ph, pw = (-h) % m, (-w) % m
-        for t_now, t_next in zip(times[:-1], times[1:], strict=True):
+        heun = self.params["sampler"] == "heun"
+        rows = row_heights(h, h + ph).to(x.device).expand(x.shape[0], -1)
+
+        def velocity(x: torch.Tensor, t: float) -> torch.Tensor:
             xin = F.pad(x, (0, pw, 0, ph, 0, 0), mode="replicate") if (ph or pw) else x
-            tt = torch.full((x.shape[0],), float(t_now), device=x.device)
-            v = self.ema(xin, tt)[..., :h, :w]
-            x = x + float(t_next - t_now) * v
+            tt = torch.full((x.shape[0],), t, device=x.device)
+            return self.ema(xin, tt, rows=rows)[..., :h, :w]
+
+        for t_now, t_next in zip(times[:-1], times[1:], strict=True):
+            dt = float(t_next - t_now)
+            v = velocity(x, float(t_now))
+            if heun and t_next > 0:  # trapezoidal correction (the last step stays Euler)
+                v = 0.5 * (v + velocity(x + dt * v, float(t_next)))
+            x = x + dt * v
         return x
 
     def refine(self, video: np.ndarray, strength: float, seed: int = 0) -> np.ndarray:

@@ -7,9 +7,12 @@
   average over their common frames);
 * :func:`velocity_plots` — those series drawn, vx and vy against time, one row per bubble;
 * :func:`copy_overlays` — a few mask overlays of the mask stage, for the report;
+* :func:`copy_videos` — the novel-view videos (raw renders, refined), for the report;
 * :func:`session_metrics_table` — one session's ``metrics.json`` as a two-column table;
 * :func:`campaign_page` — one self-contained HTML page: the campaign table and each
-  session's figures embedded as PNG data.
+  session's fits compared, figures, mesh snapshots and videos embedded as data.
+
+Mesh snapshots: :mod:`surfphase.report.snapshots`; tables: :mod:`surfphase.report.tables`.
 
 Units: metres, seconds, m/s; lab frame (+y up). Time is ``frame / fps`` for every source.
 """
@@ -28,25 +31,15 @@ import pandas as pd
 
 from surfphase.eval.stage import read_table
 from surfphase.io import atomic_path, atomic_write_text
+from surfphase.report.tables import (
+    SUMMARY_COLUMNS,  # noqa: F401 (re-exported: the campaign summary's columns)
+    comparison_table,
+    flatten,
+    summary_table,
+)
 
 FIT_COLUMNS = ("frame", "bubble", "x", "y", "z", "vx", "vy", "vz")
 GT_MAX_DIST = 1.5e-3  # metres: a fit bubble farther than this from every true one is unpaired
-
-# Columns of the campaign summary table, in order, with their headings.
-SUMMARY_COLUMNS = {
-    "session": "session",
-    "velocity.method.relative_error": "velocity rel. error (method)",
-    "velocity.baseline.relative_error": "velocity rel. error (baseline)",
-    "velocity.method.mean_abs_error_mps": "velocity mean abs. error m/s (method)",
-    "velocity.baseline.mean_abs_error_mps": "velocity mean abs. error m/s (baseline)",
-    "reference2d.method.relative_error_y": "vy rel. error vs 2D ref. (method)",
-    "reference2d.baseline.relative_error_y": "vy rel. error vs 2D ref. (baseline)",
-    "heldout.mean.psnr": "held-out PSNR dB",
-    "heldout.mean.ssim": "held-out SSIM",
-    "heldout.mean.l1": "held-out L1",
-    "chamfer_mm.mean_mm": "Chamfer mm",
-    "frames": "frames",
-}
 
 
 def read_bubbles(path: str | os.PathLike, what: str) -> pd.DataFrame:
@@ -210,27 +203,57 @@ def copy_overlays(
     return copies
 
 
-def _flatten(obj: Mapping, prefix: str = "") -> dict:
-    out = {}
-    for k, v in obj.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, Mapping):
-            out.update(_flatten(v, key + "."))
-        elif not isinstance(v, list):
-            out[key] = v
-    return out
+def copy_videos(
+    views_dir: str | os.PathLike | None,
+    refine_dir: str | os.PathLike | None,
+    out_dir: str | os.PathLike,
+) -> list[Path]:
+    """Copy the novel-view videos into ``out_dir`` (created, emptied of MP4s first):
+    ``views_dir/<v>.mp4`` (the raw renders of the fit) as ``<v>_raw.mp4`` and
+    ``refine_dir/<v>.mp4`` (the refined ones) as ``<v>_refined.mp4``; returns the copies,
+    raw and refined of each view next to each other."""
+    found: list[tuple[Path, str]] = []
+    for folder, kind in ((views_dir, "raw"), (refine_dir, "refined")):
+        if folder is None:
+            continue
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise FileNotFoundError(f"{folder}: no {kind} novel-view videos (folder not found)")
+        mp4s = sorted(folder.glob("*.mp4"))
+        if not mp4s:
+            raise FileNotFoundError(f"{folder}: no {kind} novel-view videos (*.mp4)")
+        found += [(p, f"{p.stem}_{kind}.mp4") for p in mp4s]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("*.mp4"):
+        old.unlink()
+    copies = []
+    for src, name in sorted(found, key=lambda item: item[1]):
+        with atomic_path(out / name) as tmp:
+            shutil.copyfile(src, tmp)
+        copies.append(out / name)
+    return copies
 
 
 def session_metrics_table(metrics: Mapping) -> pd.DataFrame:
     """A ``metrics.json`` dict as rows ``metric, value`` (nested keys joined by dots;
     lists and per-frame Chamfer values left out)."""
-    flat = {k: v for k, v in _flatten(metrics).items() if ".per_frame." not in k}
+    flat = {k: v for k, v in flatten(metrics).items() if ".per_frame." not in k}
     return pd.DataFrame({"metric": list(flat), "value": list(flat.values())})
 
 
 def _img_tag(png: Path, alt: str) -> str:
     data = base64.b64encode(png.read_bytes()).decode("ascii")
     return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def _video_tag(mp4: Path, caption: str) -> str:
+    data = base64.b64encode(mp4.read_bytes()).decode("ascii")
+    return (
+        f"<figure><video controls loop muted playsinline "
+        f'src="data:video/mp4;base64,{data}"></video>'
+        f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+    )
 
 
 PAGE_STYLE = """
@@ -240,8 +263,49 @@ th, td { border: 1px solid #bbb; padding: 0.25em 0.6em; text-align: right; }
 th { background: #eee; }
 img { max-width: 100%; border: 1px solid #ddd; margin: 0.3em; }
 .overlays img { max-width: 30%; }
+.meshes img { max-width: 48%; }
+.videos { display: flex; flex-wrap: wrap; }
+.videos figure { margin: 0.3em; text-align: center; font-size: 0.8em; }
+.videos video { width: 192px; image-rendering: pixelated; border: 1px solid #ddd; }
 details { margin-bottom: 1.5em; }
 """
+
+
+def videos_page(
+    videos: Sequence[str | os.PathLike], out_html: str | os.PathLike, title: str = ""
+) -> int:
+    """Write a self-contained HTML page with the novel-view videos (as written by
+    :func:`copy_videos`: ``<v>_raw.mp4``, ``<v>_refined.mp4``) embedded, one row per view,
+    raw beside refined; returns the number of views."""
+    rows: dict[str, dict[str, Path]] = {}
+    for p in map(Path, videos):
+        view, _, kind = p.stem.rpartition("_")
+        if kind not in ("raw", "refined") or not view:
+            raise ValueError(f"{p}: expected <view>_raw.mp4 or <view>_refined.mp4")
+        rows.setdefault(view, {})[kind] = p
+    kinds = [k for k in ("raw", "refined") if any(k in r for r in rows.values())]
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{html.escape(title)}</title><style>{PAGE_STYLE}</style></head><body>",
+        f"<h2>{html.escape(title)}</h2>" if title else "",
+        "<table><tr><th>view</th>" + "".join(f"<th>{k}</th>" for k in kinds) + "</tr>",
+    ]
+    for view in sorted(rows):
+        cells = [
+            f"<td>{_video_tag(rows[view][k], f'{view} {k}')}</td>"
+            if k in rows[view]
+            else "<td></td>"
+            for k in kinds
+        ]
+        parts.append(f"<tr><td>{html.escape(view)}</td>{''.join(cells)}</tr>")
+    parts += ["</table>", "</body></html>"]
+    atomic_write_text(out_html, "\n".join(parts) + "\n")
+    return len(rows)
+
+
+def _fmt(v) -> str:
+    return f"{v:.4g}"
 
 
 def campaign_page(
@@ -250,20 +314,26 @@ def campaign_page(
     figures: Mapping[str, Sequence[str | os.PathLike]] | None = None,
     overlays: Mapping[str, Sequence[str | os.PathLike]] | None = None,
     title: str = "SurfPhase campaign",
+    meshes: Mapping[str, Sequence[str | os.PathLike]] | None = None,
+    videos: Mapping[str, Sequence[str | os.PathLike]] | None = None,
 ) -> pd.DataFrame:
     """Write one self-contained HTML page of the campaign; returns its summary table.
 
-    The page holds the summary table (:data:`SUMMARY_COLUMNS` present in the CSV), the
-    full table transposed (one row per metric, one column per session), and per session
-    its ``figures`` and mask ``overlays`` (PNG files, embedded as base64 data, so the page
-    needs no other file).
+    The page holds the summary table (:func:`surfphase.report.tables.summary_table`),
+    the full table transposed (one row per metric, one column per session), and per
+    session the comparison of its fits (method, stage 1, baseline, ablations; full frame
+    and bubble region: :func:`surfphase.report.tables.comparison_table`), its
+    ``figures``, mesh snapshots, novel-view videos and mask ``overlays`` (embedded as
+    base64 data, so the page needs no other file).
 
     Args:
         metrics_csv: the campaign table (``surfphase campaign-table``), one row per session.
         out_html: the page to write.
         figures: ``{session: [png, ...]}`` shown full width (velocity plots); sessions
-            absent from the CSV are an error.
+            absent from the CSV are an error (for every mapping here).
         overlays: ``{session: [png, ...]}`` shown three to a row (mask overlays).
+        meshes: ``{session: [png, ...]}`` shown two to a row (mesh snapshots).
+        videos: ``{session: [mp4, ...]}`` (novel-view videos; the file name is the caption).
     """
     metrics_csv = Path(metrics_csv)
     if not metrics_csv.is_file():
@@ -275,13 +345,16 @@ def campaign_page(
     if "session" not in table.columns:
         raise ValueError(f"{metrics_csv}: no 'session' column")
     table["session"] = table["session"].astype(str)
-    figures, overlays = dict(figures or {}), dict(overlays or {})
-    unknown = sorted((set(figures) | set(overlays)) - set(table["session"]))
+    media = {
+        "figures": dict(figures or {}),
+        "overlays": dict(overlays or {}),
+        "meshes": dict(meshes or {}),
+        "videos": dict(videos or {}),
+    }
+    unknown = sorted(set().union(*map(set, media.values())) - set(table["session"]))
     if unknown:
         raise ValueError(f"{metrics_csv}: figures given for sessions not in the table: {unknown}")
-    summary = table[[c for c in SUMMARY_COLUMNS if c in table.columns]].rename(
-        columns=SUMMARY_COLUMNS
-    )
+    summary = summary_table(table)
     full = table.set_index("session").T
     full.index.name = "metric"
     parts = [
@@ -290,27 +363,43 @@ def campaign_page(
         f"<title>{html.escape(title)}</title><style>{PAGE_STYLE}</style></head><body>",
         f"<h1>{html.escape(title)}</h1>",
         f"<p>{len(table)} sessions. Velocities in m/s (lab frame, +y up); relative errors "
-        "are mean |v − v<sub>true</sub>| / mean |v<sub>true</sub>|.</p>",
+        "are mean |v − v<sub>true</sub>| / mean |v<sub>true</sub>|. Held-out metrics: "
+        "mean over the held-out cameras, over the full frame and inside the bubble region "
+        "(the projected true bubbles), where the full frame is dominated by the heated "
+        "plate and backlight that the fit does not reconstruct. Ablations are stage-1 "
+        "fits: compare them with stage 1.</p>",
         "<h2>Summary</h2>",
-        summary.to_html(index=False, float_format=lambda v: f"{v:.4g}", na_rep="–"),
+        summary.to_html(index=False, float_format=_fmt, na_rep="–"),
         "<details><summary>All metrics</summary>",
-        full.to_html(float_format=lambda v: f"{v:.4g}", na_rep="–"),
+        full.to_html(float_format=_fmt, na_rep="–"),
         "</details>",
     ]
-    for session in table["session"]:
-        pngs = [Path(p) for p in figures.get(session, ())]
-        masks = [Path(p) for p in overlays.get(session, ())]
-        for p in pngs + masks:
+    for _, row in table.iterrows():
+        session = row["session"]
+        files = {k: [Path(p) for p in v.get(session, ())] for k, v in media.items()}
+        for p in (p for group in files.values() for p in group):
             if not p.is_file():
                 raise FileNotFoundError(f"{p}: session {session}: figure not found")
-        if not pngs and not masks:
-            continue
         anchor = html.escape(session)
         parts.append(f'<h2 id="{anchor}">{anchor}</h2>')
-        parts += [_img_tag(p, f"{session} {p.stem}") for p in pngs]
-        if masks:
+        comparison = comparison_table(row.to_dict())
+        if len(comparison.columns) > 1 and len(comparison):
+            parts.append(comparison.to_html(index=False, float_format=_fmt, na_rep="–"))
+        parts += [_img_tag(p, f"{session} {p.stem}") for p in files["figures"]]
+        if files["meshes"]:
+            parts.append("<h3>Meshes coloured by speed</h3>")
+            parts.append('<div class="meshes">')
+            parts += [_img_tag(p, f"{session} mesh {p.stem}") for p in files["meshes"]]
+            parts.append("</div>")
+        if files["videos"]:
+            parts.append("<h3>Novel views</h3>")
+            parts.append('<div class="videos">')
+            parts += [_video_tag(p, p.stem.replace("_", " ")) for p in files["videos"]]
+            parts.append("</div>")
+        if files["overlays"]:
+            parts.append("<h3>Mask overlays</h3>")
             parts.append('<div class="overlays">')
-            parts += [_img_tag(p, f"{session} mask overlay {p.stem}") for p in masks]
+            parts += [_img_tag(p, f"{session} mask overlay {p.stem}") for p in files["overlays"]]
             parts.append("</div>")
     parts.append("</body></html>")
     atomic_write_text(out_html, "\n".join(parts) + "\n")

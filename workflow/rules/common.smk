@@ -149,12 +149,23 @@ def ingest_cameras(wc):
     return f"{RESULTS}/calib/{session_rig(wc.session)}/cameras.json"
 
 
+# Refinement on: novel views → prior → refined views → stage-2 fit, whose surfels are the
+# final result. Off (the "no refinement" ablation): the stage-1 fit is final.
+REFINE = bool(config.get("refine", {}).get("enabled", False))
+FINAL_FIT = "fit2" if REFINE else "fit"
+
+
+def final_fit(session, name="surfels.npz"):
+    """A file of the session's final fit (stage 2 with refinement, else stage 1)."""
+    return f"{RESULTS}/{session}/{FINAL_FIT}/{name}"
+
+
 def evaluate_inputs(wc):
     """Stage outputs the evaluation reads, plus the session's ground truth if it has one."""
     inputs = {
         "ingest": f"{RESULTS}/{wc.session}/ingest",
         "masks": f"{RESULTS}/{wc.session}/masks",
-        "fit": f"{RESULTS}/{wc.session}/fit/surfels.npz",
+        "fit": final_fit(wc.session),
         "meshes": f"{RESULTS}/{wc.session}/mesh",
     }
     gt = resolve(sessions, sessions.loc[wc.session].get("gt", ""))

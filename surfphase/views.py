@@ -1,0 +1,329 @@
+"""Novel views: the stage-1 fit rendered into orbit cameras about the scene centre.
+
+``OUT/`` (the ``render_views`` stage, written into a temporary folder and renamed, so it
+appears whole or not at all):
+
+==================  =====================  ===============================================
+file                shape / dtype          meaning
+==================  =====================  ===============================================
+``cameras.json``    surfphase.cameras      the orbit cameras ``orbit01`` … at the fit's
+                                           resolution; top level: ``session``, ``fps``,
+                                           ``frame`` (session frame indices),
+                                           ``scene_center`` (m), ``reference`` (camera)
+``<v>.npy``         (T, H, W) uint16       grey render of view ``v`` composited over
+                                           ``background.npy``, lossless (value·65535)
+``<v>_alpha.npy``   (T, H, W) float16      the render's accumulated alpha
+``<v>.mp4``         H.264, T frames        the same frames for people, at the session's fps
+``background.npy``  (H, W) float32         the mean of the input views' fit backgrounds
+==================  =====================  ===============================================
+
+Orbit view k (1-based) is the reference input camera (the fit's first, unless named)
+rotated by k·``step_deg`` about the lab +y axis through the scene centre
+(:func:`surfphase.cameras.orbit_cameras`): same distance, height and intrinsics, looking
+at the centre. The scene centre is the least-squares closest point of the input cameras'
+optical axes (:func:`scene_center`), which is where a rig's cameras aim.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from surfphase.cameras import Camera, load_cameras, orbit_cameras, save_cameras
+from surfphase.io import atomic_path, save_npy
+
+DEFAULTS: dict = {
+    "n_views": 11,  # orbit views orbit01 … orbitNN
+    "step_deg": 30.0,  # azimuth step between consecutive views, degrees about lab +y
+    "reference": None,  # input camera the orbit starts from (None: the fit's first)
+}
+
+
+def views_params(params: dict | None) -> dict:
+    """Defaults updated with ``params``; unknown keys are an error."""
+    unknown = set(params or {}) - set(DEFAULTS)
+    if unknown:
+        raise ValueError(f"render-views: unknown parameters {sorted(unknown)} (known: "
+                         f"{sorted(DEFAULTS)})")  # fmt: skip
+    return {**DEFAULTS, **(params or {})}
+
+
+def scene_center(cameras: Sequence[Camera]) -> np.ndarray:
+    """(3,) least-squares closest point (metres) of the cameras' optical axes.
+
+    Minimises Σ_c ‖(I − d_c d_cᵀ)(x − o_c)‖², o_c the centre and d_c the unit axis of
+    camera c; needs ≥ 2 non-parallel axes.
+    """
+    if len(cameras) < 2:
+        raise ValueError(f"scene_center: need ≥ 2 cameras, got {len(cameras)}")
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for cam in cameras:
+        d = cam.view_dir / np.linalg.norm(cam.view_dir)
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ cam.center
+    if np.linalg.cond(A) > 1e8:
+        raise ValueError("scene_center: the cameras' optical axes are parallel")
+    return np.linalg.solve(A, b)
+
+
+def orbit_view_cameras(
+    inputs: Sequence[Camera],
+    n_views: int = 11,
+    step_deg: float = 30.0,
+    reference: str | None = None,
+) -> tuple[list[Camera], np.ndarray]:
+    """The orbit cameras ``orbit01`` … and the scene centre (3,) metres.
+
+    Args:
+        inputs: the fit's input cameras (undistorted images), ≥ 2.
+        n_views, step_deg: number of views and azimuth step (degrees) about lab +y.
+        reference: name of the input camera view k rotates from (default the first).
+    """
+    inputs = list(inputs)
+    ref = inputs[0]
+    if reference is not None:
+        named = [c for c in inputs if c.name == reference]
+        if not named:
+            raise ValueError(
+                f"render-views: reference camera {reference!r} is not an input camera "
+                f"({', '.join(c.name for c in inputs)})"
+            )
+        ref = named[0]
+    center = scene_center(inputs)
+    return orbit_cameras(ref.undistorted(), center, int(n_views), float(step_deg)), center
+
+
+def input_cameras(ingest_dir: str | os.PathLike) -> list[Camera]:
+    """The fit's input cameras: those of ``ingest/cameras.json`` with a frame stack, in
+    file order (the order of the fit's ``bg_images``), undistorted."""
+    ingest_dir = Path(ingest_dir)
+    path = ingest_dir / "cameras.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no cameras.json in the ingest folder")
+    cams = [c.undistorted() for n, c in load_cameras(path).items()
+            if (ingest_dir / f"{n}.npy").is_file()]  # fmt: skip
+    if len(cams) < 2:
+        raise ValueError(f"{ingest_dir}: need frame stacks of ≥ 2 cameras, found {len(cams)}")
+    return cams
+
+
+def fit_background(surfels: dict[str, np.ndarray], height: int, width: int) -> np.ndarray:
+    """(H, W) float32 grey background behind the bubbles in a novel view: the mean of the
+    input views' fit backgrounds (``bg_images``) when they have this size, else the fit's
+    constant background colour (channels averaged)."""
+    bg = surfels.get("bg_images")
+    if bg is not None and bg.shape[1:3] == (height, width):
+        img = np.asarray(bg, np.float32).mean(axis=0)
+    else:
+        colour = np.asarray(surfels["background"], np.float32).reshape(1, 1, -1)
+        img = np.broadcast_to(colour, (height, width, colour.shape[-1]))
+    return np.ascontiguousarray(img.mean(axis=-1), dtype=np.float32)
+
+
+def render_frame(
+    surfels: dict[str, np.ndarray],
+    t: int,
+    cameras: Sequence[Camera],
+    background: np.ndarray,
+    device: str | torch.device = "cpu",
+) -> tuple[np.ndarray, np.ndarray]:
+    """Render frame position ``t`` of the fit into ``cameras``.
+
+    Args:
+        surfels: arrays of ``surfels.npz`` (:mod:`surfphase.fit.outputs`).
+        t: 0-based frame position in the file.
+        cameras: C undistorted cameras of one size (H, W).
+        background: (H, W) grey image behind the surfels, [0, 1].
+
+    Returns:
+        grey (C, H, W) float32 in [0, 1] (colour channels averaged) and alpha (C, H, W).
+    """
+    from surfphase.render import camera_tensors, rasterize_surfels
+
+    dev = torch.device(device)
+    alive = np.asarray(surfels["alive"][t], bool)
+    H, W = cameras[0].height, cameras[0].width
+    if not alive.any():
+        n = len(cameras)
+        return np.broadcast_to(background, (n, H, W)).copy(), np.zeros((n, H, W), np.float32)
+
+    def f(k: str) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(surfels[k][t])[alive], device=dev)
+
+    viewmats, Ks = camera_tensors(list(cameras), dev, torch.float32)
+    with torch.no_grad():
+        rgb, alpha, _ = rasterize_surfels(
+            f("means"), f("quats"), torch.exp(f("log_scales")), f("opacity"),
+            f("colors").clamp(0, 1), viewmats, Ks, W, H,
+        )  # fmt: skip
+    grey = rgb.mean(-1).cpu().numpy()
+    a = alpha[..., 0].cpu().numpy()
+    return np.clip(grey + (1 - a) * background, 0, 1).astype(np.float32), a.astype(np.float32)
+
+
+def to_uint16(frames: np.ndarray) -> np.ndarray:
+    """[0, 1] floats → uint16 (value·65535, rounded; the lossless view format)."""
+    return np.round(np.clip(frames, 0.0, 1.0) * 65535.0).astype(np.uint16)
+
+
+def write_mp4(path: str | os.PathLike, frames: np.ndarray, fps: float) -> None:
+    """Write (T, H, W) grey frames in [0, 1] as an H.264 MP4 (yuv420p), whole or not at all.
+
+    H and W are padded to even sizes (H.264 with 4:2:0 chroma needs them) by repeating
+    the last row/column.
+    """
+    import imageio.v2 as imageio
+
+    v = np.round(np.clip(np.asarray(frames, np.float32), 0, 1) * 255).astype(np.uint8)
+    ph, pw = v.shape[1] % 2, v.shape[2] % 2
+    if ph or pw:
+        v = np.pad(v, ((0, 0), (0, ph), (0, pw)), mode="edge")
+    with atomic_path(path) as tmp:
+        w = imageio.get_writer(
+            str(tmp), format="FFMPEG", mode="I", fps=float(fps), codec="libx264",
+            pixelformat="yuv420p", macro_block_size=1, ffmpeg_log_level="error",
+            output_params=["-crf", "18"],
+        )  # fmt: skip
+        try:
+            for frame in v:
+                w.append_data(np.repeat(frame[..., None], 3, axis=2))
+        finally:
+            w.close()
+
+
+def read_mp4(path: str | os.PathLike) -> np.ndarray:
+    """(T, H, W) uint8 grey frames of an MP4 (first colour channel)."""
+    import imageio.v2 as imageio
+
+    r = imageio.get_reader(str(path), format="FFMPEG")
+    try:
+        return np.stack([np.asarray(f)[..., 0] for f in r])
+    finally:
+        r.close()
+
+
+def session_fps(ingest_dir: str | os.PathLike) -> tuple[str, float]:
+    """Session id and frame rate (frames/s) from ``ingest/meta.json``."""
+    path = Path(ingest_dir) / "meta.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no meta.json in the ingest folder")
+    try:
+        meta = json.loads(path.read_text())
+    except ValueError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from e
+    session = str(meta.get("session", Path(ingest_dir).parent.name))
+    fps = float(meta.get("fps") or 0)
+    if not fps > 0:
+        raise ValueError(f"{path}: session {session}: fps must be positive")
+    return session, fps
+
+
+def make_part_dir(final: Path) -> Path:
+    """A fresh temporary folder next to ``final`` (``.<name>.part-*``) with the usual
+    umask permissions (mkdtemp makes owner-only folders)."""
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.part-", dir=final.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)
+    return tmp
+
+
+def render_views(
+    surfels_path: str | os.PathLike,
+    ingest_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    params: dict | None = None,
+    device: str | torch.device = "cpu",
+    log=print,
+) -> dict:
+    """Render every orbit view of a stage-1 fit into ``out_dir`` (see the module table).
+
+    Args:
+        surfels_path: the fit's ``surfels.npz``.
+        ingest_dir: the session's ingest folder (``cameras.json``, stacks, ``meta.json``).
+        out_dir: the views folder to write (replaced whole if it exists).
+        params: overrides of :data:`DEFAULTS`.
+        device: torch device of the renderer.
+        log: progress lines (``None`` for silence).
+
+    Returns:
+        a summary (views, frames, size, seconds).
+    """
+    from surfphase.fit.outputs import load_surfels
+
+    p = views_params(params)
+    t0 = time.perf_counter()
+    surfels = load_surfels(surfels_path)
+    session, fps = session_fps(ingest_dir)
+    inputs = input_cameras(ingest_dir)
+    cams, center = orbit_view_cameras(inputs, p["n_views"], p["step_deg"], p["reference"])
+    H, W = inputs[0].height, inputs[0].width
+    background = fit_background(surfels, H, W)
+    T = int(np.asarray(surfels["alive"]).shape[0])
+    frames = np.zeros((len(cams), T, H, W), np.float32)
+    alphas = np.zeros((len(cams), T, H, W), np.float32)
+    for t in range(T):
+        frames[:, t], alphas[:, t] = render_frame(surfels, t, cams, background, device)
+        if log and ((t + 1) % 8 == 0 or t + 1 == T):
+            log(f"session {session}: rendered frame {t + 1}/{T} of {len(cams)} views")
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = make_part_dir(out_dir)
+    try:
+        save_npy(tmp / "background.npy", background)
+        for k, cam in enumerate(cams):
+            save_npy(tmp / f"{cam.name}.npy", to_uint16(frames[k]))
+            save_npy(tmp / f"{cam.name}_alpha.npy", alphas[k].astype(np.float16))
+            write_mp4(tmp / f"{cam.name}.mp4", frames[k], fps)
+        save_cameras(
+            tmp / "cameras.json", cams, session=session, fps=fps,
+            frame=np.asarray(surfels.get("frame", np.arange(T))).tolist(),
+            scene_center=center.tolist(), reference=p["reference"] or inputs[0].name,
+            n_views=int(p["n_views"]), step_deg=float(p["step_deg"]),
+        )  # fmt: skip
+        if out_dir.exists():
+            old = out_dir.with_name(f".{out_dir.name}.old-{os.getpid()}")
+            out_dir.rename(old)
+            tmp.rename(out_dir)
+            shutil.rmtree(old)
+        else:
+            tmp.rename(out_dir)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
+    return {
+        "session": session,
+        "views": [c.name for c in cams],
+        "frames": T,
+        "size": [H, W],
+        "scene_center_m": center.tolist(),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+
+
+def load_view(views_dir: str | os.PathLike, name: str) -> tuple[np.ndarray, float]:
+    """(T, H, W) float32 [0, 1] frames of view ``name`` and the session's fps."""
+    views_dir = Path(views_dir)
+    path = views_dir / f"{name}.npy"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such view in {views_dir}")
+    stack = np.load(path)
+    if stack.dtype != np.uint16 or stack.ndim != 3:
+        raise ValueError(f"{path}: expected a (T, H, W) uint16 stack, got {stack.dtype} "
+                         f"{stack.shape}")  # fmt: skip
+    cam_path = views_dir / "cameras.json"
+    try:
+        fps = float(json.loads(cam_path.read_text())["fps"])
+    except (OSError, ValueError, KeyError) as e:
+        raise ValueError(f"{cam_path}: no readable fps ({e})") from e
+    return stack.astype(np.float32) / 65535.0, fps

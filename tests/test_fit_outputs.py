@@ -1,0 +1,64 @@
+"""The fit's bubble table: centroids and track-aware finite-difference velocities."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from surfphase.fit.outputs import bubble_table
+
+
+def _arrays(means: np.ndarray, bubble: np.ndarray, alive: np.ndarray) -> dict:
+    F, N = bubble.shape
+    return {
+        "means": means.astype(np.float32),
+        "bubble": bubble.astype(np.int32),
+        "alive": alive,
+        "opacity": np.ones((F, N), np.float32),
+        "log_scales": np.zeros((F, N, 2), np.float32),
+    }
+
+
+def test_velocities_are_one_sided_at_merges_and_births():
+    # Two bubbles of two surfels each, 4 frames at dt = 0.1 s. Bubble 1 moves +x at
+    # 1 m/s, bubble 2 +y at 2 m/s. They merge into bubble 3 at frame 2; a new bubble
+    # (two surfels spawned at frame 2, absent before) appears as bubble 4.
+    F, N = 4, 6
+    times = 0.1 * np.arange(F)
+    x0 = np.array([[0.0, 0, 0], [0.2, 0, 0], [5, 0, 0], [5.2, 0, 0], [9, 9, 0], [9, 9.2, 0]])
+    v = np.array([[1.0, 0, 0], [1, 0, 0], [0, 2, 0], [0, 2, 0], [0, 0, 3], [0, 0, 3]])
+    means = x0[None] + times[:, None, None] * v[None]
+    bubble = np.array(
+        [[1, 1, 2, 2, -1, -1], [1, 1, 2, 2, -1, -1], [3, 3, 3, 3, 4, 4]] + [[3, 3, 3, 3, 4, 4]]
+    )
+    alive = np.ones((F, N), bool)
+    alive[:2, 4:] = False
+    tab = bubble_table(_arrays(means, bubble, alive), times, np.arange(F)).set_index(
+        ["frame", "bubble"]
+    )
+    vel = lambda f, b: tab.loc[(f, b), ["vx", "vy", "vz"]].to_numpy(np.float64)  # noqa: E731
+    # Bubble 1: frame 0 forward, frame 1 backward (its track ends at the merge);
+    # the merged surfels' (0, 1)-weighted motion is never mixed in.
+    np.testing.assert_allclose(vel(0, 1), [1, 0, 0], atol=1e-5)
+    np.testing.assert_allclose(vel(1, 1), [1, 0, 0], atol=1e-5)
+    np.testing.assert_allclose(vel(1, 2), [0, 2, 0], atol=1e-5)
+    # Bubble 3 starts at the merge: forward at frame 2, backward at frame 3 (last).
+    np.testing.assert_allclose(vel(2, 3), [0.5, 1, 0], atol=1e-5)
+    np.testing.assert_allclose(vel(3, 3), [0.5, 1, 0], atol=1e-5)
+    np.testing.assert_allclose(vel(2, 4), [0, 0, 3], atol=1e-5)  # spawned: forward
+    # Centroids: the mean of the bubble's surfels (equal weights).
+    np.testing.assert_allclose(tab.loc[(2, 3), ["x", "y", "z"]].to_numpy(float), [2.7, 0.2, 0])
+    assert tab.loc[(2, 3), "n_surfels"] == 4
+
+
+def test_central_difference_inside_a_track_with_an_id_change():
+    # One bubble accelerating along y (y = t²), renumbered from 1 to 7 at frame 2.
+    F = 5
+    times = 0.5 * np.arange(F)
+    means = np.zeros((F, 2, 3))
+    means[:, :, 1] = times[:, None] ** 2
+    means[:, 1, 0] = 0.1
+    bubble = np.array([[1, 1], [1, 1], [7, 7], [7, 7], [7, 7]])
+    tab = bubble_table(_arrays(means, bubble, np.ones((F, 2), bool)), times, np.arange(F))
+    vy = tab.set_index("frame")["vy"].to_numpy()
+    # np.gradient of t²: central inside, one-sided at both ends.
+    np.testing.assert_allclose(vy, np.gradient(times**2, times), atol=1e-5)
