@@ -166,7 +166,7 @@ def track_continues(
     weights_a: np.ndarray,
     weights_b: np.ndarray,
     b: int,
-    min_share: float = 0.5,
+    min_share: float = 0.75,
 ) -> int | None:
     """The bubble that continues bubble ``b`` from one frame to the next, if any.
 
@@ -184,8 +184,9 @@ def track_continues(
             weight 0).
         weights_a, weights_b: (N,) centroid weights at the two frames.
         b: the bubble at frame A.
-        min_share: the fraction of weight that must be exceeded both ways (0.5: a
-            strict majority; an even split is a merge).
+        min_share: the fraction of weight that must be exceeded both ways. 0.75: a
+            merge of two bubbles ends both tracks unless one is at least 3× the other's
+            weight; a few stray or unbound surfels do not.
 
     Returns:
         The id of the continuing bubble at frame B, or ``None``.

@@ -536,7 +536,9 @@ def _advect_velocities(
     """Bubble and per-surfel velocities (m/s) from the last two finished frames.
 
     Uses the surfels bound to each bubble at the last frame, their positions at both
-    frames; bubbles (and surfels) without history get the configured initial velocity.
+    frames; bubbles (and surfels) without history get the configured initial velocity,
+    and so do bubbles whose track begins at the last frame
+    (:func:`~surfphase.fit.binding.track_continues`: a merge, a split, a new id).
     """
     cur = records[-1]
     bub = cur["bubble"]
@@ -550,6 +552,12 @@ def _advect_velocities(
         dt = data.times[len(records) - 1] - data.times[len(records) - 2]
         w = binding.surfel_weights(cur["opacity"][:m], np.exp(cur["log_scales"][:m]))
         vb = binding.bubble_velocities(prev["means"], cur["means"][:m], bub[:m], w, dt)
+        # A bubble whose track starts at the last frame (merge, split, new id) has no
+        # history yet: its surfels' motion across the event is not its velocity.
+        w_prev = binding.surfel_weights(prev["opacity"], np.exp(prev["log_scales"]))
+        for b in [b for b in vb if b > 0]:
+            if binding.track_continues(bub[:m], prev["bubble"], w, w_prev, b) is None:
+                del vb[b]
         surfel_v[:m] = (cur["means"][:m].astype(np.float64) - prev["means"]) / dt
     for b in np.unique(bub):
         if b > 0 and int(b) not in vb:

@@ -172,3 +172,12 @@ def evaluate_inputs(wc):
     if gt and os.path.isdir(gt):
         inputs["gt"] = gt
     return inputs
+
+
+def fit2_settings():
+    """Stage-2 settings (config ``fit2:``); the far views default to ``refine.far_views``."""
+    settings = dict(config.get("fit2") or {})
+    far = (config.get("refine") or {}).get("far_views")
+    if far is not None:
+        settings.setdefault("far_views", far)
+    return settings

@@ -29,15 +29,6 @@ rule fit:
         " --params-json {params.settings:q} > {log:q} 2>&1"
 
 
-def fit2_settings():
-    """Stage-2 settings (config ``fit2:``); the far views default to ``refine.far_views``."""
-    settings = dict(config.get("fit2") or {})
-    far = (config.get("refine") or {}).get("far_views")
-    if far is not None:
-        settings.setdefault("far_views", far)
-    return settings
-
-
 rule fit_stage2:
     """Stage-2 fit: stage 1 restarted from its frame-0 surfels, with the refined orbit
     views as extra supervision (inputs 1.0, near views 0.5, far views 0.25)."""
