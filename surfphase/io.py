@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -40,6 +41,44 @@ def atomic_path(path: str | os.PathLike, suffix: str | None = None) -> Iterator[
     finally:
         if tmp_path.exists():
             tmp_path.unlink()
+
+
+def part_dir(final: str | os.PathLike) -> Path:
+    """A fresh temporary folder ``.<name>.part-*`` next to ``final`` (its parent is
+    created), with the usual umask permissions (mkdtemp makes owner-only folders)."""
+    final = Path(final)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.part-", dir=final.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)
+    return tmp
+
+
+def replace_dir(tmp: str | os.PathLike, out: str | os.PathLike) -> None:
+    """Put the finished folder ``tmp`` at ``out`` by renames, replacing an existing
+    ``out`` (moved aside, then removed), so ``out`` is always whole."""
+    tmp, out = Path(tmp), Path(out)
+    if out.exists() and not (out.is_dir() and not any(out.iterdir())):
+        old = out.parent / f".{out.name}.old-{os.getpid()}"
+        os.replace(out, old)
+        os.replace(tmp, out)
+        shutil.rmtree(old)
+    else:
+        os.replace(tmp, out)
+
+
+@contextlib.contextmanager
+def atomic_dir(out: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary folder next to ``out`` (:func:`part_dir`); on success it
+    replaces ``out`` (:func:`replace_dir`), on error it is removed."""
+    tmp = part_dir(out)
+    try:
+        yield tmp
+        replace_dir(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:

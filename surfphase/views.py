@@ -28,8 +28,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -38,7 +36,7 @@ import numpy as np
 import torch
 
 from surfphase.cameras import Camera, load_cameras, orbit_cameras, save_cameras
-from surfphase.io import atomic_path, save_npy
+from surfphase.io import atomic_dir, atomic_path, save_npy
 
 DEFAULTS: dict = {
     "n_views": 11,  # orbit views orbit01 … orbitNN
@@ -228,16 +226,6 @@ def session_fps(ingest_dir: str | os.PathLike) -> tuple[str, float]:
     return session, fps
 
 
-def make_part_dir(final: Path) -> Path:
-    """A fresh temporary folder next to ``final`` (``.<name>.part-*``) with the usual
-    umask permissions (mkdtemp makes owner-only folders)."""
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.part-", dir=final.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)
-    return tmp
-
-
 def render_views(
     surfels_path: str | os.PathLike,
     ingest_dir: str | os.PathLike,
@@ -277,9 +265,7 @@ def render_views(
         if log and ((t + 1) % 8 == 0 or t + 1 == T):
             log(f"session {session}: rendered frame {t + 1}/{T} of {len(cams)} views")
     out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = make_part_dir(out_dir)
-    try:
+    with atomic_dir(out_dir) as tmp:
         save_npy(tmp / "background.npy", background)
         for k, cam in enumerate(cams):
             save_npy(tmp / f"{cam.name}.npy", to_uint16(frames[k]))
@@ -291,16 +277,6 @@ def render_views(
             scene_center=center.tolist(), reference=p["reference"] or inputs[0].name,
             n_views=int(p["n_views"]), step_deg=float(p["step_deg"]),
         )  # fmt: skip
-        if out_dir.exists():
-            old = out_dir.with_name(f".{out_dir.name}.old-{os.getpid()}")
-            out_dir.rename(old)
-            tmp.rename(out_dir)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
     return {
         "session": session,
         "views": [c.name for c in cams],

@@ -8,11 +8,8 @@ import json
 from pathlib import Path
 
 
-def _load_config(path: str | None) -> tuple[dict, str | None]:
-    """Fit parameters from a YAML/JSON config: its ``fit:`` section (or the whole file),
-    and the top-level ``device`` if any."""
-    if not path:
-        return {}, None
+def _read_config(path: str) -> dict:
+    """The top-level mapping of a config YAML/JSON file (errors name the file)."""
     import yaml
 
     p = Path(path)
@@ -24,6 +21,15 @@ def _load_config(path: str | None) -> tuple[dict, str | None]:
         raise ValueError(f"{p}: not valid YAML ({e})") from e
     if not isinstance(cfg, dict):
         raise ValueError(f"{p}: expected a mapping at the top level")
+    return cfg
+
+
+def _load_config(path: str | None) -> tuple[dict, str | None]:
+    """Fit parameters from a YAML/JSON config: its ``fit:`` section (or the whole file),
+    and the top-level ``device`` if any."""
+    if not path:
+        return {}, None
+    p, cfg = Path(path), _read_config(path)
     if "fit" in cfg:
         fit = cfg["fit"] or {}
     else:
@@ -112,17 +118,7 @@ def _load_config2(path: str | None) -> tuple[dict, dict, str | None]:
     """(``fit:``, ``fit2:``, ``device``) of a config YAML/JSON file."""
     if not path:
         return {}, {}, None
-    import yaml
-
-    p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f"{p}: config file not found")
-    try:
-        cfg = yaml.safe_load(p.read_text()) or {}
-    except yaml.YAMLError as e:
-        raise ValueError(f"{p}: not valid YAML ({e})") from e
-    if not isinstance(cfg, dict):
-        raise ValueError(f"{p}: expected a mapping at the top level")
+    p, cfg = Path(path), _read_config(path)
     fit, fit2 = cfg.get("fit") or {}, cfg.get("fit2") or {}
     if not isinstance(fit, dict) or not isinstance(fit2, dict):
         raise ValueError(f"{p}: 'fit' and 'fit2' must be mappings")

@@ -122,6 +122,7 @@ def train_prior(
     import cv2
 
     from surfphase.device import resolve_device
+    from surfphase.io import atomic_dir, atomic_write_json
     from surfphase.prior.clips import find_clips, read_clips
     from surfphase.prior.interface import new_prior
 
@@ -143,9 +144,7 @@ def train_prior(
     sample_s = time.perf_counter() - t1
     real = [c[:frames, :size, :size] for c in clips[: min(2, len(clips))]]
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _part_dir(out)
-    try:
+    with atomic_dir(out) as tmp:
         prior.save(tmp)
         if not cv2.imwrite(str(tmp / "samples.png"), sample_grid(real, samples)):
             raise OSError(f"could not write {out / 'samples.png'}")
@@ -161,30 +160,8 @@ def train_prior(
             "samples_png": "samples: rows below the black band; training clips above",
             **{k: v for k, v in train_log.items() if k != "seconds"},
         }
-        from surfphase.io import atomic_write_json
-
         atomic_write_json(tmp / "train.json", report)
-        if out.exists():
-            old = out.with_name(f".{out.name}.old-{os.getpid()}")
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old)
-        else:
-            tmp.rename(out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp)
     return report
-
-
-def _part_dir(final: Path) -> Path:
-    """A fresh temporary folder ``.<name>.part-*`` next to ``final``, with the usual
-    umask permissions (mkdtemp makes owner-only folders)."""
-    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}.part-", dir=final.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)
-    return tmp
 
 
 def _torch_threads() -> int:
@@ -250,7 +227,7 @@ def refine_view(
     so a rerun starts clean and gives the same arrays (the noise is seeded).
     """
     from surfphase.device import resolve_device
-    from surfphase.io import atomic_write_json, save_npy
+    from surfphase.io import atomic_write_json, part_dir, save_npy
     from surfphase.prior.interface import load_prior
     from surfphase.prior.sdedit import check_strength
     from surfphase.views import load_view, to_uint16, write_mp4
@@ -261,7 +238,7 @@ def refine_view(
     for stale in out_dir.glob(f".{view}.part-*"):
         shutil.rmtree(stale, ignore_errors=True)
     frames, fps = load_view(views_dir, view)
-    part = _part_dir(out_dir / view)
+    part = part_dir(out_dir / view)
     try:
         prior = load_prior(prior_dir, device=resolve_device(device))
         t0 = time.perf_counter()

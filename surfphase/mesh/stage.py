@@ -27,7 +27,6 @@ import hashlib
 import json
 import os
 import shutil
-import tempfile
 import time
 import zipfile
 from dataclasses import dataclass
@@ -38,7 +37,7 @@ from scipy.spatial import cKDTree
 
 from surfphase.cameras import Camera, load_cameras, orbit_cameras
 from surfphase.fit.outputs import load_surfels
-from surfphase.io import atomic_path, atomic_write_json
+from surfphase.io import atomic_path, atomic_write_json, part_dir, replace_dir
 from surfphase.mesh.cleanup import clean_mesh, mesh_stats
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
@@ -301,26 +300,6 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
     return [records[t] for t in positions]
 
 
-def _replace_dir(tmp: Path, out: Path) -> None:
-    """Put the finished folder ``tmp`` at ``out`` by renames (whole or not at all)."""
-    if out.exists() and not (out.is_dir() and not any(out.iterdir())):
-        old = out.parent / f".{out.name}.old-{os.getpid()}"
-        os.replace(out, old)
-        os.replace(tmp, out)
-        shutil.rmtree(old)
-    else:
-        os.replace(tmp, out)
-
-
-def _temp_dir(out: Path) -> Path:
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".part", dir=out.parent))
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o777 & ~umask)
-    return tmp
-
-
 def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict) -> dict:
     """Write ``OUT/<frame>.ply`` and ``OUT/mesh.json`` of ``records``, whole or not at all."""
     if p["speed_max"] == "session":
@@ -330,7 +309,7 @@ def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict)
         vmax = float(max(speeds)) if speeds and max(speeds) > 0 else 1.0
     else:
         vmax = float(p["speed_max"])
-    tmp = _temp_dir(out)
+    tmp = part_dir(out)
     try:
         rows = []
         for r in records:
@@ -355,7 +334,7 @@ def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict)
             "frames": rows,
         }
         atomic_write_json(tmp / "mesh.json", summary)
-        _replace_dir(tmp, out)
+        replace_dir(tmp, out)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp)
@@ -424,7 +403,7 @@ def run_mesh_window(
         "frames": [int(r["frame"]) for r in records],
     }
     atomic_write_json(work / "window.json", info)
-    _replace_dir(work, out_dir)
+    replace_dir(work, out_dir)
     return info
 
 
