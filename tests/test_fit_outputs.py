@@ -62,3 +62,46 @@ def test_central_difference_inside_a_track_with_an_id_change():
     vy = tab.set_index("frame")["vy"].to_numpy()
     # np.gradient of t²: central inside, one-sided at both ends.
     np.testing.assert_allclose(vy, np.gradient(times**2, times), atol=1e-5)
+
+
+def test_records_with_surfel_ids_stack_by_id():
+    # Frame 0: surfels 0, 1, 2; frame 1: surfel 1 retired (replaced at a merge) and
+    # surfel 3 added. Columns are ids, so surfel 2 keeps column 2 at both frames, and the
+    # per-surfel velocities are backward for the retired one at its last frame.
+    from surfphase.fit.outputs import stack_records, surfel_velocities
+
+    def rec(ids, xs):
+        n = len(ids)
+        means = np.zeros((n, 3), np.float32)
+        means[:, 0] = xs
+        return {
+            "ids": np.asarray(ids),
+            "means": means,
+            "quats": np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+            "log_scales": np.zeros((n, 2), np.float32),
+            "colors": np.zeros((n, 1), np.float32),
+            "opacity": np.ones(n, np.float32),
+            "bubble": np.ones(n, np.int32),
+            "gamma": 1.0,
+        }
+
+    r0, r1 = rec([0, 1, 2], [0.0, 1.0, 2.0]), rec([0, 2, 3], [0.5, 2.5, 7.0])
+    r2 = rec([0, 2, 3], [1.0, 3.0, 7.5])
+    a = stack_records([r0, r1, r2], extent=1.0)
+    assert a["alive"].tolist() == [[1, 1, 1, 0], [1, 0, 1, 1], [1, 0, 1, 1]]
+    np.testing.assert_allclose(a["means"][:, 2, 0], [2.0, 2.5, 3.0])
+    np.testing.assert_allclose(a["means"][1:, 3, 0], [7.0, 7.5])
+    v = surfel_velocities(a["means"], a["alive"], np.array([0.0, 1.0, 2.0]))
+    np.testing.assert_allclose(v[:, 0, 0], [0.5, 0.5, 0.5])  # central inside, one-sided ends
+    np.testing.assert_allclose(v[0, 1], 0.0)  # surfel 1 exists at frame 0 only: unknown
+    np.testing.assert_allclose(v[1, 3, 0], 0.5)  # born at frame 1: forward
+
+
+def test_retired_surfel_gets_a_backward_difference():
+    from surfphase.fit.outputs import surfel_velocities
+
+    means = np.zeros((3, 1, 3), np.float32)
+    means[:, 0, 1] = [0.0, 2.0, 0.0]
+    alive = np.array([[True], [True], [False]])
+    v = surfel_velocities(means, alive, np.array([0.0, 0.5, 1.0]))
+    np.testing.assert_allclose(v[1, 0], [0, 4.0, 0])  # retired after frame 1: backward

@@ -65,3 +65,21 @@ def test_bad_inputs_name_the_file(tmp_path, toy):
     with pytest.raises(FileNotFoundError, match="cam0_labels.npy"):
         run_fit(ingest, empty, tmp_path / "o", SMALL, device="cpu")
     assert not Path(tmp_path / "o" / "surfels.npz").exists()
+
+
+def test_read_merges_from_the_mask_events(tmp_path):
+    from surfphase.fit.stage import read_merges
+
+    p = tmp_path / "events.csv"
+    p.write_text(
+        "frame,camera,event,parents,children\n"
+        "14,cam0,merge,1+2,5\n"
+        "3,cam1,split,3,1+4\n"
+        "14,cam1,merge,2+4,5\n"
+        "19,cam1,merge,3+5,6\n"
+    )
+    assert read_merges(p) == {14: {5: {1, 2, 4}}, 19: {6: {3, 5}}}
+    assert read_merges(tmp_path / "missing.csv") == {}
+    p.write_text("frame,camera\n1,cam0\n")
+    with pytest.raises(ValueError, match="events.csv"):
+        read_merges(p)

@@ -1,7 +1,8 @@
 """Outputs of the stage-1 fit, written whole or not at all.
 
 ``OUTDIR/surfels.npz`` — every surfel at every frame (F frames, N surfels: all surfels
-ever created; surfels appended later for new bubbles are padded before they exist):
+ever created, column = the surfel's id; surfels appended later for new bubbles are padded
+before they exist, and those a merge replaced are padded after it, see ``alive``):
 
 =============  ============  ========================================================
 key            shape/dtype   meaning
@@ -54,9 +55,14 @@ PER_SURFEL = ("means", "quats", "log_scales", "colors", "opacity")
 
 
 def stack_records(records: Sequence[dict], extent: float) -> dict[str, np.ndarray]:
-    """Pad the per-frame records to (F, N, ...) arrays (see the module table)."""
+    """Pad the per-frame records to (F, N, ...) arrays (see the module table).
+
+    A record's rows are the surfels whose ids are ``r["ids"]`` (ascending; without
+    ``ids``: ``0 … n−1``), so column ``i`` of every array is surfel ``i`` at every frame.
+    """
     F = len(records)
-    N = max(r["means"].shape[0] for r in records)
+    ids = [record_ids(r) for r in records]
+    N = max((int(i.max()) + 1 if i.size else 0) for i in ids)
     D = records[0]["colors"].shape[1]
     out: dict[str, np.ndarray] = {
         "alive": np.zeros((F, N), dtype=bool),
@@ -70,15 +76,22 @@ def stack_records(records: Sequence[dict], extent: float) -> dict[str, np.ndarra
         "gamma": np.full(F, np.nan, np.float32),
     }
     for t, r in enumerate(records):
-        n = r["means"].shape[0]
-        out["alive"][t, :n] = True
+        n = ids[t]
+        out["alive"][t, n] = True
         for k in PER_SURFEL:
-            out[k][t, :n] = r[k]
-        out["bubble"][t, :n] = r["bubble"]
+            out[k][t, n] = r[k]
+        out["bubble"][t, n] = r["bubble"]
         if "sdf" in r:
-            out["sdf"][t, :n] = r["sdf"] * extent
+            out["sdf"][t, n] = r["sdf"] * extent
             out["gamma"][t] = r["gamma"] / extent
     return out
+
+
+def record_ids(record: dict) -> np.ndarray:
+    """The persistent surfel ids (n,) int64 of a frame record's rows."""
+    if "ids" in record:
+        return np.asarray(record["ids"], dtype=np.int64)
+    return np.arange(record["means"].shape[0], dtype=np.int64)
 
 
 def surfel_velocities(means: np.ndarray, alive: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -98,6 +111,9 @@ def surfel_velocities(means: np.ndarray, alive: np.ndarray, times: np.ndarray) -
             # Surfels born at t: forward difference.
             fwd = alive[t] & alive[b] & ~alive[a]
             v[t, fwd] = (m[b, fwd] - m[t, fwd]) / (times[b] - times[t])
+            # Surfels retired after t (replaced at a merge): backward difference.
+            bwd = alive[t] & alive[a] & ~alive[b]
+            v[t, bwd] = (m[t, bwd] - m[a, bwd]) / (times[t] - times[a])
     return v.astype(np.float32)
 
 
@@ -274,6 +290,11 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
         "psnr_per_frame": [r["psnr"] for r in records],
         "psnr_mean": float(np.mean([np.mean(r["psnr"]) for r in records])),
         "spawned": {int(r["frame"]): r["spawned"] for r in records if r["spawned"]},
+        "reseeded": {
+            int(r["frame"]): sorted(int(b) for b in r["reseeded"])
+            for r in records
+            if r.get("reseeded")
+        },
         "seconds_per_frame": [r["seconds"] for r in records],
         "seconds_first_frame": secs[0],
         "seconds_per_later_frame": float(np.mean(secs[1:])) if F > 1 else None,

@@ -32,6 +32,9 @@ def register_bubbles(
     lr: float,
     lr_decay: float = 0.1,
     skip_ids: tuple[int, ...] = (0,),
+    foreground: torch.Tensor | None = None,
+    w_silhouette: float = 0.0,
+    silhouettes: dict[int, torch.Tensor] | None = None,
 ) -> dict[int, np.ndarray]:
     """Translate each bubble's surfels rigidly to fit ``observed``; update ``model`` in place.
 
@@ -51,6 +54,14 @@ def register_bubbles(
         lr: initial step size, metres.
         lr_decay: final step size as a fraction of ``lr``.
         skip_ids: bubble ids left where they are.
+        foreground: (C, H, W) masks of the new frame in {0, 1} (bubbles and nucleation
+            region); with ``w_silhouette`` > 0 the loss adds ``w_silhouette`` times the
+            per-view mean |α − foreground|, which a shape change (a coalescing bubble)
+            misleads less than the ring's shading.
+        w_silhouette: weight of that silhouette term.
+        silhouettes: ``{bubble: (C, H, W) its own mask in {0, 1}}``: for these bubbles
+            the loss adds ``w_silhouette`` times the per-view mean |α_b − mask_b|, α_b
+            rendered from that bubble's surfels alone.
 
     Returns:
         ``{bubble: (3,) translation applied, metres}`` for every translated bubble.
@@ -84,6 +95,17 @@ def register_bubbles(
         rgb, alpha, _ = rasterize_surfels(means, quats, scales, opac, colors, viewmats, Ks, W, H)
         img = rgb + (1.0 - alpha) * background
         loss = (img - observed).abs().flatten(1).mean(dim=1).sum()
+        if foreground is not None and w_silhouette > 0:
+            sil = (alpha[..., 0] - foreground).abs().flatten(1).mean(dim=1).sum()
+            loss = loss + w_silhouette * sil
+        for b, mask in (silhouettes or {}).items():
+            if b not in ids or w_silhouette <= 0:
+                continue
+            sel = row_t == ids.index(b)
+            _, a_b, _ = rasterize_surfels(
+                means[sel], quats[sel], scales[sel], opac[sel], colors[sel], viewmats, Ks, W, H
+            )
+            loss = loss + w_silhouette * (a_b[..., 0] - mask).abs().flatten(1).mean(dim=1).sum()
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

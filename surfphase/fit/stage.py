@@ -61,6 +61,7 @@ DEFAULTS: dict = {
     # -- iterations -------------------------------------------------------------------
     "iters_first": 150,  # Adam steps at frame 0 (with densification)
     "iters_next": 30,  # Adam steps at every later frame
+    "iters_reseed": 90,  # Adam steps at a frame where a merged bubble was re-seeded
     # -- initialisation ---------------------------------------------------------------
     "n_init": 1500,  # at most this many surfels seeded on the visual hull
     "hull_grid": 48,  # hull voxels along the longest bounding-box side
@@ -69,6 +70,11 @@ DEFAULTS: dict = {
     "spawn_min_surfels": 30,  # a mask bubble with fewer bound surfels gets new ones
     "spawn_max_surfels": 400,  # at most this many surfels per newly appearing bubble
     "spawn_grid": 24,  # hull voxels per newly appearing bubble
+    # A bubble formed by a merge (the mask stage's events.csv) is seeded afresh from its
+    # visual hull; see _reseed_merges.
+    "reseed_merges": False,
+    "reseed_grid": 32,  # hull voxels per merged bubble
+    "reseed_max_surfels": 800,
     # -- learning rates (2DGS's, f: 0.05) ---------------------------------------------
     # Position: lr_means·L metres per step. 2DGS uses 1.6e-4 × its camera extent (1.1 ×
     # the largest camera-centre distance from their mean: ≈ 2 cm for the reference rig);
@@ -111,6 +117,9 @@ DEFAULTS: dict = {
     # new frame photometrically (surfphase.fit.register) before the per-surfel steps.
     "register_steps": 15,  # Adam steps of that translation fit (0: off)
     "lr_register": 0.01,  # its step size, units of L (decays to 1/10 over the steps)
+    "register_silhouette": 0.0,  # weight of |α − masks| in that fit (0: photometric only)
+    "register_silhouette_all": False,  # True: every bubble; False: merged bubbles only
+    "register_silhouette_frames": 3,  # ... for this many frames after their merge
     # -- outputs ----------------------------------------------------------------------
     "background": "images",  # "images": per-view temporal median of background pixels;
     # "constant": one colour, the median of those; or a number in [0, 1]
@@ -130,6 +139,27 @@ def merge_params(params: Mapping | None) -> dict:
 
 
 # -- inputs ------------------------------------------------------------------------------
+def read_merges(path: Path) -> dict[int, dict[int, set[int]]]:
+    """``{frame position: {merged bubble: parent bubbles}}`` from the mask stage's
+    ``events.csv`` (``merge`` rows of any camera; parents and children are ``+``-joined
+    bubble ids). A missing file (masks from elsewhere) means no merges are known."""
+    import pandas as pd
+
+    out: dict[int, dict[int, set[int]]] = {}
+    if not path.exists():
+        return out
+    try:
+        ev = pd.read_csv(path, dtype=str)
+        rows = ev[ev["event"] == "merge"]
+        for f, par, chi in zip(rows["frame"], rows["parents"], rows["children"], strict=True):
+            for c in str(chi).split("+"):
+                d = out.setdefault(int(f), {}).setdefault(int(c), set())
+                d.update(int(q) for q in str(par).split("+"))
+    except (KeyError, ValueError, pd.errors.ParserError) as e:
+        raise ValueError(f"{path}: not a merge/split event table of the mask stage ({e})") from e
+    return out
+
+
 class SessionData:
     """The frames, masks and cameras of one session (memory-mapped stacks).
 
@@ -184,6 +214,7 @@ class SessionData:
                 f"listed in cameras.json, found {len(self.cameras)}"
             )
         self.n_frames = min(s.shape[0] for s in self.stacks)
+        self.merges = read_merges(masks_dir / "events.csv")
         idx = self.meta.get("frame_indices") or self.meta.get("frames")
         if isinstance(idx, list) and len(idx) >= self.n_frames:
             self.frame_indices = np.asarray(idx[: self.n_frames], dtype=np.int64)
@@ -459,9 +490,19 @@ def _initial_model(data: SessionData, p: dict, gen: torch.Generator, dtype) -> S
 
 
 def _spawn_bubbles(
-    model: SurfelModel, data: SessionData, t: int, p: dict, gen: torch.Generator
+    model: SurfelModel,
+    data: SessionData,
+    t: int,
+    p: dict,
+    gen: torch.Generator,
+    sizes: Mapping[int, tuple[int, int]] | None = None,
 ) -> list[int]:
-    """Add surfels for bubbles that the masks of frame ``t`` show but no surfel covers."""
+    """Add surfels for bubbles that the masks of frame ``t`` show but no surfel covers.
+
+    ``sizes``: ``{bubble: (hull grid, most surfels)}`` overriding ``spawn_grid`` and
+    ``spawn_max_surfels`` (bubbles re-seeded at a merge).
+    """
+    sizes = sizes or {}
     labels = data.labels(t)
     spheres = init.bubble_spheres(data.cameras, labels)
     bound = binding.bind_surfels_to_bubbles(
@@ -474,15 +515,16 @@ def _spawn_bubbles(
             continue
         if images is None:
             images = list(data.images(t))
+        grid, most = sizes.get(b, (p["spawn_grid"], p["spawn_max_surfels"]))
         hull = init.visual_hull_surfels(
-            data.cameras, labels, images, bubble=b, spheres=spheres, grid=p["spawn_grid"]
+            data.cameras, labels, images, bubble=b, spheres=spheres, grid=grid
         )
         n = hull.points.shape[0]
         if n == 0:
             continue
         idx = np.arange(n)
-        if n > p["spawn_max_surfels"]:
-            idx = torch.randperm(n, generator=gen)[: p["spawn_max_surfels"]].sort().values.numpy()
+        if n > most:
+            idx = torch.randperm(n, generator=gen)[:most].sort().values.numpy()
         dt = model.means.dtype
         new = SurfelModel.from_points(
             torch.as_tensor(hull.points[idx], dtype=dt),
@@ -535,11 +577,15 @@ def _advect_velocities(
 ) -> tuple[dict[int, np.ndarray], np.ndarray]:
     """Bubble and per-surfel velocities (m/s) from the last two finished frames.
 
-    Uses the surfels bound to each bubble at the last frame, their positions at both
-    frames; bubbles (and surfels) without history get the configured initial velocity,
-    and so do bubbles whose track begins at the last frame
-    (:func:`~surfphase.fit.binding.track_continues`: a merge, a split, a new id).
+    Uses the surfels bound to each bubble at the last frame that also existed at the one
+    before (matched by surfel id), their positions at both frames. Bubbles whose track
+    begins at the last frame (:func:`~surfphase.fit.binding.track_continues`: a merge, a
+    split, a new id) have no history: a bubble re-seeded at a merge gets its parents'
+    volume-weighted velocity (momentum), any other the configured initial velocity; so
+    do surfels without history.
     """
+    from surfphase.fit.outputs import record_ids
+
     cur = records[-1]
     bub = cur["bubble"]
     v_nuc = np.asarray(p["v_init_nucleation"], dtype=np.float64)
@@ -548,23 +594,82 @@ def _advect_velocities(
     vb: dict[int, np.ndarray] = {}
     if len(records) >= 2:
         prev = records[-2]
-        m = prev["means"].shape[0]
+        _, ic, ip = np.intersect1d(
+            record_ids(cur), record_ids(prev), assume_unique=True, return_indices=True
+        )
         dt = data.times[len(records) - 1] - data.times[len(records) - 2]
-        w = binding.surfel_weights(cur["opacity"][:m], np.exp(cur["log_scales"][:m]))
-        vb = binding.bubble_velocities(prev["means"], cur["means"][:m], bub[:m], w, dt)
+        w = binding.surfel_weights(cur["opacity"][ic], np.exp(cur["log_scales"][ic]))
+        vb = binding.bubble_velocities(prev["means"][ip], cur["means"][ic], bub[ic], w, dt)
         # A bubble whose track starts at the last frame (merge, split, new id) has no
         # history yet: its surfels' motion across the event is not its velocity.
-        w_prev = binding.surfel_weights(prev["opacity"], np.exp(prev["log_scales"]))
+        w_prev = binding.surfel_weights(prev["opacity"][ip], np.exp(prev["log_scales"][ip]))
         for b in [b for b in vb if b > 0]:
-            if binding.track_continues(bub[:m], prev["bubble"], w, w_prev, b) is None:
+            if binding.track_continues(bub[ic], prev["bubble"][ip], w, w_prev, b) is None:
                 del vb[b]
-        surfel_v[:m] = (cur["means"][:m].astype(np.float64) - prev["means"]) / dt
+        surfel_v[ic] = (cur["means"][ic].astype(np.float64) - prev["means"][ip]) / dt
+    reseeded = cur.get("reseeded") or {}
     for b in np.unique(bub):
         if b > 0 and int(b) not in vb:
-            vb[int(b)] = v_bub
+            vb[int(b)] = np.asarray(reseeded.get(int(b), v_bub), dtype=np.float64)
         if b == 0 and 0 not in vb:
             vb[0] = v_nuc
     return vb, surfel_v
+
+
+def _recent_merges(data: SessionData, t: int, frames: int) -> list[int]:
+    """Bubbles that a merge formed at one of the ``frames`` frames before ``t``."""
+    return sorted({b for f in range(t - frames, t) for b in data.merges.get(f, {})})
+
+
+def _reseed_merges(
+    model: SurfelModel,
+    data: SessionData,
+    t: int,
+    prev: dict,
+    velocities: dict[int, np.ndarray],
+    p: dict,
+) -> tuple[dict[int, np.ndarray], np.ndarray]:
+    """Drop the surfels of bubbles that a merge formed at frame ``t``; return their
+    parents' velocity and the kept rows.
+
+    The merges are the mask stage's (``events.csv``: the merged bubble's id first shows
+    at ``t``). The parents' surfels sit where two spheres were and need many frames to
+    become one interface, and their centroid drifts meanwhile, which reads as velocity;
+    the merged bubble is therefore seeded afresh from its visual hull
+    (:func:`_spawn_bubbles`), like a bubble that appears. Its first advection uses its
+    parents' velocities weighted by their volumes (radii of the previous frame's mask
+    spheres, cubed: momentum is conserved).
+
+    Returns:
+        ``{merged bubble: (3,) m/s}`` and the (N,) bool rows kept; ``model`` is edited.
+    """
+    merges = data.merges.get(t, {})
+    keep = np.ones(model.n, dtype=bool)
+    out: dict[int, np.ndarray] = {}
+    if not merges:
+        return out, keep
+    labels = data.labels(t)
+    bound = binding.bind_surfels_to_bubbles(
+        model.means.detach().double().cpu().numpy(), data.cameras, labels
+    )
+    spheres = init.bubble_spheres(data.cameras, data.labels(t - 1))
+    v_bub = np.asarray(p["v_init_bubble"], np.float64)
+    for b, parents in sorted(merges.items()):
+        parents = sorted(q for q in parents if q >= 1 and q in spheres)
+        if not (bound == b).any():
+            continue
+        if parents:
+            vols = np.array([spheres[q][1] ** 3 for q in parents])
+            vel = np.array([velocities.get(q, v_bub) for q in parents], np.float64)
+            out[int(b)] = (vols[:, None] * vel).sum(0) / vols.sum()
+        else:
+            out[int(b)] = v_bub
+        keep &= bound != b
+    if out:
+        from surfphase.fit.densify import select_surfels
+
+        select_surfels(model, None, torch.as_tensor(keep, device=model.means.device))
+    return out, keep
 
 
 def run_fit(
@@ -643,11 +748,17 @@ def run_fit(
         ebg = torch.as_tensor(extra_views.backgrounds, dtype=dtype, device=dev)
         fit_bg = torch.cat([bg_t, ebg])
 
+    from surfphase.fit.outputs import record_ids
+
+    # Persistent surfel ids of the model's rows (columns of surfels.npz).
+    next_id = int(state.get("next_id", model.n)) if state is not None else 0
+    ids = record_ids(records[-1]) if records else np.zeros(0, dtype=np.int64)
     for t in range(start, n_frames):
         t0 = time.perf_counter()
         labels = data.labels(t)
         spawned: list[int] = []
         registered: dict[int, np.ndarray] = {}
+        reseeded: dict[int, np.ndarray] = {}
         if t > 0:
             if p["guidance"]:
                 vb, vs = _advect_velocities(records, data, p)
@@ -666,9 +777,26 @@ def run_fit(
                     bg_t,
                     steps=int(p["register_steps"]),
                     lr=p["lr_register"] * model.extent,
+                    foreground=(
+                        torch.as_tensor(np.stack(labels) >= 0, dtype=dtype, device=dev)
+                        if p["register_silhouette_all"]
+                        else None
+                    ),
+                    w_silhouette=float(p["register_silhouette"]),
+                    silhouettes={
+                        b: torch.as_tensor(np.stack(labels) == b, dtype=dtype, device=dev)
+                        for b in _recent_merges(data, t, int(p["register_silhouette_frames"]))
+                    },
                 )
             model.params = {k: v.detach().cpu() for k, v in model.params.items()}
-            spawned = _spawn_bubbles(model, data, t, p, gen)
+            if p["guidance"] and p["reseed_merges"]:
+                reseeded, keep = _reseed_merges(model, data, t, records[-1], vb, p)
+                ids = ids[keep]
+            n_before = model.n
+            grid = (int(p["reseed_grid"]), int(p["reseed_max_surfels"]))
+            spawned = _spawn_bubbles(model, data, t, p, gen, {b: grid for b in reseeded})
+            ids = np.concatenate([ids, np.arange(next_id, next_id + model.n - n_before)])
+            next_id += model.n - n_before
             model.params = {
                 k: v.detach().to(dev).requires_grad_(True) for k, v in model.params.items()
             }
@@ -691,7 +819,8 @@ def run_fit(
             )
             geo_from = int(p["geo_from"] * iters)
         else:
-            iters, strategy, geo_from = int(p["iters_next"]), NoDensify(), 0
+            iters = int(p["iters_reseed"] if reseeded else p["iters_next"])
+            strategy, geo_from = NoDensify(), 0
         t_opt = time.perf_counter()
         if extra_views is None:
             rows = fit_frame(
@@ -716,9 +845,13 @@ def run_fit(
         bubble = binding.bind_surfels_to_bubbles(
             model_cpu.means.detach().double().numpy(), data.cameras, labels
         )
+        if t == 0:  # densification has settled the first frame's surfels
+            ids, next_id = np.arange(model.n, dtype=np.int64), model.n
         rec = _record(model_cpu, bubble)
         rec.update(
             {
+                "ids": ids.astype(np.int64),
+                "reseeded": reseeded,
                 "frame": t,
                 "curves": rows,
                 "psnr": view_psnr,
@@ -736,6 +869,7 @@ def run_fit(
             {
                 "key": key,
                 "next_frame": t + 1,
+                "next_id": next_id,
                 "params": model_cpu.state(),
                 "extent": model.extent,
                 "generator": gen.get_state(),

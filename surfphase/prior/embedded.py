@@ -56,6 +56,7 @@ DEFAULT_PARAMS: dict = {
     "batch": 8,  # windows per step
     "lr": 1e-3,  # AdamW learning rate (cosine decay to 5 %, 20-step warm-up)
     "time_dist": "tilted",  # training times: uniform | logit_normal | tilted (density 0.5 + t)
+    "crop_focus": 0.0,  # fraction of training windows centred on moving content (bubbles)
     "ema": 0.995,  # decay of the weight average used for sampling
     "sample_steps": 24,  # Euler steps of a full (strength 1) generation
     "sampler": "euler",  # euler | heun (2nd order: two network calls per step but the last)
@@ -194,6 +195,14 @@ class VideoUNet(nn.Module):
         return y
 
 
+def activity_map(clip: np.ndarray) -> np.ndarray:
+    """(T, H, W) float64 weights of moving content in a (T, H, W) clip in [0, 1]: each
+    pixel's absolute difference from the clip's per-pixel temporal median (the static
+    backlight and plate score ≈ 0, the bubbles high), squared so the bubbles dominate."""
+    c = np.asarray(clip, np.float64)
+    return (np.abs(c - np.median(c, axis=0)[None])) ** 2
+
+
 def row_heights(height: int, n: int | None = None) -> torch.Tensor:
     """(n,) float32 heights of rows 0 … n−1 in a frame of ``height`` rows: −1 at the top
     row, 1 at the bottom one (rows past the bottom, e.g. padding, continue the ramp)."""
@@ -258,6 +267,7 @@ class EmbeddedPrior:
                     f"≥ {crop} px per side (params 'frames', 'crop')"
                 )
         data = [torch.from_numpy(np.ascontiguousarray(c, np.float32)) * 2 - 1 for c in clips]
+        focus = [activity_map(c) for c in clips] if float(p["crop_focus"]) > 0 else None
         rng = np.random.default_rng([int(p["seed"]), 77])
         gen = torch.Generator().manual_seed(int(p["seed"]))
         steps, batch = int(p["steps"]), int(p["batch"])
@@ -271,7 +281,10 @@ class EmbeddedPrior:
         self.model.train()
         losses, t0 = [], time.perf_counter()
         for step in range(steps):
-            wins = [self._window(data, rng, T, crop) for _ in range(batch)]
+            wins = [
+                self._window(data, rng, T, crop, focus, float(p["crop_focus"]))
+                for _ in range(batch)
+            ]
             x0 = torch.stack([w for w, _ in wins])[:, None].to(self.device)  # (B, 1, T, c, c)
             rows = torch.stack([r for _, r in wins]).to(self.device)  # (B, crop)
             noise = torch.randn(x0.shape, generator=gen).to(self.device)
@@ -315,16 +328,36 @@ class EmbeddedPrior:
         )
 
     @staticmethod
-    def _window(data: list[torch.Tensor], rng: np.random.Generator, T: int, crop: int):
+    def _window(
+        data: list[torch.Tensor],
+        rng: np.random.Generator,
+        T: int,
+        crop: int,
+        focus: list[np.ndarray] | None = None,
+        focus_frac: float = 0.0,
+    ):
         """A random (T, crop, crop) window of a random clip, mirrored left-right at random,
         and the (crop,) heights of its rows in the clip's frame (:func:`row_heights`).
 
+        With ``focus`` (per clip a (T_i, H_i, W_i) :func:`activity_map`), a fraction
+        ``focus_frac`` of the windows is centred on a pixel drawn with probability
+        proportional to the activity of the window's first frame, so that the network
+        sees the bubbles, a few percent of the pixels, in most windows.
+
         No vertical flips or time reversal: bubbles rise, and the prior should know it.
         """
-        c = data[int(rng.integers(len(data)))]
+        k = int(rng.integers(len(data)))
+        c = data[k]
         a = int(rng.integers(c.shape[0] - T + 1))
         y = int(rng.integers(c.shape[1] - crop + 1))
         x = int(rng.integers(c.shape[2] - crop + 1))
+        if focus is not None and rng.random() < focus_frac:
+            w = focus[k][a].ravel()
+            if w.sum() > 0:
+                i = int(rng.choice(w.size, p=w / w.sum()))
+                cy, cx = divmod(i, c.shape[2])
+                y = int(np.clip(cy - crop // 2, 0, c.shape[1] - crop))
+                x = int(np.clip(cx - crop // 2, 0, c.shape[2] - crop))
         w = c[a : a + T, y : y + crop, x : x + crop]
         rows = row_heights(c.shape[1])[y : y + crop]
         return (w.flip(-1) if rng.random() < 0.5 else w), rows
