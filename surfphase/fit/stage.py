@@ -72,7 +72,7 @@ DEFAULTS: dict = {
     "spawn_grid": 24,  # hull voxels per newly appearing bubble
     # A bubble formed by a merge (the mask stage's events.csv) is seeded afresh from its
     # visual hull; see _reseed_merges.
-    "reseed_merges": False,
+    "reseed_merges": True,
     "reseed_grid": 32,  # hull voxels per merged bubble
     "reseed_max_surfels": 800,
     # -- learning rates (2DGS's, f: 0.05) ---------------------------------------------
@@ -117,7 +117,7 @@ DEFAULTS: dict = {
     # new frame photometrically (surfphase.fit.register) before the per-surfel steps.
     "register_steps": 15,  # Adam steps of that translation fit (0: off)
     "lr_register": 0.01,  # its step size, units of L (decays to 1/10 over the steps)
-    "register_silhouette": 0.0,  # weight of |α − masks| in that fit (0: photometric only)
+    "register_silhouette": 3.0,  # weight of |α − masks| in that fit (0: photometric only)
     "register_silhouette_all": False,  # True: every bubble; False: merged bubbles only
     "register_silhouette_frames": 3,  # ... for this many frames after their merge
     # -- outputs ----------------------------------------------------------------------
