@@ -183,3 +183,18 @@ def test_training_windows_carry_their_rows_heights_in_the_frame():
         )
     with pytest.raises(ValueError, match="rows"):
         VideoUNet([8], position=True)(torch.zeros(1, 1, 2, 4, 4), torch.zeros(1))
+
+
+def test_focused_windows_contain_the_moving_content():
+    from surfphase.prior.embedded import activity_map
+
+    clip = np.full((10, 64, 64), 0.8, np.float32)
+    for t in range(10):  # a dark 4×4 square rising through the right half
+        clip[t, 50 - 3 * t : 54 - 3 * t, 44:48] = 0.1
+    act = activity_map(clip)
+    assert act.shape == clip.shape and act[:, :, :32].max() == 0.0
+    data = [torch.from_numpy(clip) * 2 - 1]
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        w, _rows = EmbeddedPrior._window(data, rng, 4, 16, [act], 1.0)
+        assert (w[0] < 0).any()  # the first frame of every window shows the square
