@@ -625,7 +625,6 @@ def _reseed_merges(
     model: SurfelModel,
     data: SessionData,
     t: int,
-    prev: dict,
     velocities: dict[int, np.ndarray],
     p: dict,
 ) -> tuple[dict[int, np.ndarray], np.ndarray]:
@@ -790,7 +789,7 @@ def run_fit(
                 )
             model.params = {k: v.detach().cpu() for k, v in model.params.items()}
             if p["guidance"] and p["reseed_merges"]:
-                reseeded, keep = _reseed_merges(model, data, t, records[-1], vb, p)
+                reseeded, keep = _reseed_merges(model, data, t, vb, p)
                 ids = ids[keep]
             n_before = model.n
             grid = (int(p["reseed_grid"]), int(p["reseed_max_surfels"]))
