@@ -25,8 +25,12 @@ lint: $(STAMP)
 test: $(STAMP) lint
 	$(BIN)/python -m pytest -q
 
-demo-data: $(STAMP)
+# The demo campaign is generated once (written whole; demo/synth.json is its last file):
+# a second `make demo` reuses it and Snakemake reruns only what is out of date.
+demo/synth.json: | $(STAMP)
 	$(BIN)/surfphase synth --preset demo --out demo
+
+demo-data: demo/synth.json
 
 demo: demo-data
 	$(BIN)/snakemake --cores $(CORES) --keep-going

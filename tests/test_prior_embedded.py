@@ -176,7 +176,8 @@ def test_training_windows_carry_their_rows_heights_in_the_frame():
     clip = torch.arange(H, dtype=torch.float32)[None, :, None].expand(6, H, 9)  # value = row
     rng = np.random.default_rng(0)
     for _ in range(5):
-        w, rows = EmbeddedPrior._window([clip], rng, 4, 8)
+        w, rows, weight = EmbeddedPrior._window([clip], rng, 4, 8)
+        assert weight == 1.0
         first = int(w[0, 0, 0])
         np.testing.assert_allclose(
             rows.numpy(), np.linspace(-1, 1, H)[first : first + 8], atol=1e-6
@@ -186,15 +187,58 @@ def test_training_windows_carry_their_rows_heights_in_the_frame():
 
 
 def test_focused_windows_contain_the_moving_content():
-    from surfphase.prior.embedded import activity_map
+    from surfphase.prior.embedded import activity_map, focus_proposal
 
     clip = np.full((10, 64, 64), 0.8, np.float32)
     for t in range(10):  # a dark 4×4 square rising through the right half
         clip[t, 50 - 3 * t : 54 - 3 * t, 44:48] = 0.1
     act = activity_map(clip)
     assert act.shape == clip.shape and act[:, :, :32].max() == 0.0
+    prop = focus_proposal(act, 16)
     data = [torch.from_numpy(clip) * 2 - 1]
     rng = np.random.default_rng(0)
     for _ in range(20):
-        w, _rows = EmbeddedPrior._window(data, rng, 4, 16, [act], 1.0)
+        w, _rows, _weight = EmbeddedPrior._window(data, rng, 4, 16, [prop], 1.0)
         assert (w[0] < 0).any()  # the first frame of every window shows the square
+
+
+def test_focus_proposal_is_the_corner_density_of_clipped_centre_draws():
+    """Against a brute-force count: every centre pixel, clipped to a window corner."""
+    from surfphase.prior.embedded import focus_proposal
+
+    rng = np.random.default_rng(3)
+    act = rng.random((2, 12, 10)) ** 4
+    act[1] = 0.0  # a frame without motion
+    crop = 5
+    q = focus_proposal(act, crop)
+    assert q.shape == (2, 8, 6)
+    ref = np.zeros((8, 6))
+    for cy in range(12):
+        for cx in range(10):
+            y = min(max(cy - crop // 2, 0), 7)
+            x = min(max(cx - crop // 2, 0), 5)
+            ref[y, x] += act[0, cy, cx]
+    np.testing.assert_allclose(q[0], ref / act[0].sum(), rtol=1e-12)
+    assert not q[1].any()
+
+
+def test_focused_window_weights_are_unbiased():
+    """E_q[p/q · g] = E_p[g]: weighted means over focused draws equal uniform means."""
+    from surfphase.prior.embedded import activity_map, focus_proposal
+
+    clip = np.full((6, 24, 24), 0.8, np.float32)
+    clip[:, 4:8, 15:19] = np.linspace(0.1, 0.5, 6)[:, None, None]  # a changing dark square
+    prop = [focus_proposal(activity_map(clip), 8)]
+    data = [torch.from_numpy(clip)]
+    rng = np.random.default_rng(0)
+    draws = [EmbeddedPrior._window(data, rng, 2, 8, prop, 0.75) for _ in range(20000)]
+    weights = np.array([w for _, _, w in draws])
+    dark = np.array([float((win < 0.6).any()) for win, _, _ in draws])
+    assert dark.mean() > 0.6  # most focused windows show the square
+    # uniform windows: the exact share of corners whose window overlaps the square
+    ys, xs = np.arange(24 - 8 + 1), np.arange(24 - 8 + 1)
+    hit_y = (ys + 8 > 4) & (ys < 8)
+    hit_x = (xs + 8 > 15) & (xs < 19)
+    p_dark = hit_y.mean() * hit_x.mean()
+    assert abs(weights.mean() - 1.0) < 0.05
+    assert abs(np.mean(weights * dark) - p_dark) < 0.03

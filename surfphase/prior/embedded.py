@@ -57,6 +57,7 @@ DEFAULT_PARAMS: dict = {
     "lr": 1e-3,  # AdamW learning rate (cosine decay to 5 %, 20-step warm-up)
     "time_dist": "tilted",  # training times: uniform | logit_normal | tilted (density 0.5 + t)
     "crop_focus": 0.0,  # fraction of training windows centred on moving content (bubbles)
+    "focus_weighted": False,  # weight focused windows' losses by p_uniform/q (unbiased density)
     "ema": 0.995,  # decay of the weight average used for sampling
     "sample_steps": 24,  # Euler steps of a full (strength 1) generation
     "sampler": "euler",  # euler | heun (2nd order: two network calls per step but the last)
@@ -203,6 +204,24 @@ def activity_map(clip: np.ndarray) -> np.ndarray:
     return (np.abs(c - np.median(c, axis=0)[None])) ** 2
 
 
+def focus_proposal(activity: np.ndarray, crop: int) -> np.ndarray:
+    """(T, H − crop + 1, W − crop + 1) float64: per frame, the probability of each window
+    top-left corner when a centre pixel is drawn with probability ∝ ``activity`` (T, H, W)
+    and the window is clipped into the frame (as :meth:`EmbeddedPrior._window` does).
+    A frame without activity gets all zeros."""
+    a = np.asarray(activity, np.float64)
+    T, H, W = a.shape
+    ny, nx = H - crop + 1, W - crop + 1
+    ty = np.clip(np.arange(H) - crop // 2, 0, ny - 1)
+    tx = np.clip(np.arange(W) - crop // 2, 0, nx - 1)
+    rows = np.zeros((T, ny, W))
+    np.add.at(rows, (slice(None), ty), a)  # rows[:, ty[i]] += a[:, i]
+    q = np.zeros((T, ny, nx))
+    np.add.at(q, (slice(None), slice(None), tx), rows)
+    total = q.sum(axis=(1, 2), keepdims=True)
+    return np.divide(q, total, out=np.zeros_like(q), where=total > 0)
+
+
 def row_heights(height: int, n: int | None = None) -> torch.Tensor:
     """(n,) float32 heights of rows 0 … n−1 in a frame of ``height`` rows: −1 at the top
     row, 1 at the bottom one (rows past the bottom, e.g. padding, continue the ramp)."""
@@ -267,7 +286,11 @@ class EmbeddedPrior:
                     f"≥ {crop} px per side (params 'frames', 'crop')"
                 )
         data = [torch.from_numpy(np.ascontiguousarray(c, np.float32)) * 2 - 1 for c in clips]
-        focus = [activity_map(c) for c in clips] if float(p["crop_focus"]) > 0 else None
+        focus = (
+            [focus_proposal(activity_map(c), crop) for c in clips]
+            if float(p["crop_focus"]) > 0
+            else None
+        )
         rng = np.random.default_rng([int(p["seed"]), 77])
         gen = torch.Generator().manual_seed(int(p["seed"]))
         steps, batch = int(p["steps"]), int(p["batch"])
@@ -285,12 +308,17 @@ class EmbeddedPrior:
                 self._window(data, rng, T, crop, focus, float(p["crop_focus"]))
                 for _ in range(batch)
             ]
-            x0 = torch.stack([w for w, _ in wins])[:, None].to(self.device)  # (B, 1, T, c, c)
-            rows = torch.stack([r for _, r in wins]).to(self.device)  # (B, crop)
+            x0 = torch.stack([w for w, _, _ in wins])[:, None].to(self.device)  # (B,1,T,c,c)
+            rows = torch.stack([r for _, r, _ in wins]).to(self.device)  # (B, crop)
+            if p["focus_weighted"]:
+                weight = torch.tensor([w for _, _, w in wins], device=self.device)
+            else:
+                weight = torch.ones(batch, device=self.device)
             noise = torch.randn(x0.shape, generator=gen).to(self.device)
             t = self._train_times(batch, gen).to(self.device)
             xt = (1 - t[:, None, None, None, None]) * x0 + t[:, None, None, None, None] * noise
-            loss = F.mse_loss(self.model(xt, t, rows=rows), noise - x0)
+            err = (self.model(xt, t, rows=rows) - (noise - x0)).square().mean(dim=(1, 2, 3, 4))
+            loss = (weight * err).mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             nn.utils.clip_grad_norm_(self.model.parameters(), 1.0)
@@ -337,30 +365,39 @@ class EmbeddedPrior:
         focus_frac: float = 0.0,
     ):
         """A random (T, crop, crop) window of a random clip, mirrored left-right at random,
-        and the (crop,) heights of its rows in the clip's frame (:func:`row_heights`).
+        the (crop,) heights of its rows in the clip's frame (:func:`row_heights`), and its
+        importance weight.
 
-        With ``focus`` (per clip a (T_i, H_i, W_i) :func:`activity_map`), a fraction
-        ``focus_frac`` of the windows is centred on a pixel drawn with probability
-        proportional to the activity of the window's first frame, so that the network
-        sees the bubbles, a few percent of the pixels, in most windows.
+        With ``focus`` (per clip the (T_i, H_i − crop + 1, W_i − crop + 1)
+        :func:`focus_proposal` of its :func:`activity_map`), a fraction ``focus_frac`` of
+        the windows is centred on a pixel drawn with probability proportional to the
+        activity of the window's first frame, so that the network sees the bubbles, a few
+        percent of the pixels, in most windows. The weight p/q (uniform corner density
+        over the mixture's; training uses it with ``focus_weighted``) makes the weighted
+        loss an unbiased estimate of the loss over uniform windows, so that the network
+        keeps the clips' bubble density while seeing more bubble windows (measured in
+        BENCHMARKS.md: it then also learns the bubbles as slowly as from uniform windows).
+        Without ``focus`` the weight is 1.
 
         No vertical flips or time reversal: bubbles rise, and the prior should know it.
         """
         k = int(rng.integers(len(data)))
         c = data[k]
         a = int(rng.integers(c.shape[0] - T + 1))
-        y = int(rng.integers(c.shape[1] - crop + 1))
-        x = int(rng.integers(c.shape[2] - crop + 1))
-        if focus is not None and rng.random() < focus_frac:
-            w = focus[k][a].ravel()
-            if w.sum() > 0:
-                i = int(rng.choice(w.size, p=w / w.sum()))
-                cy, cx = divmod(i, c.shape[2])
-                y = int(np.clip(cy - crop // 2, 0, c.shape[1] - crop))
-                x = int(np.clip(cx - crop // 2, 0, c.shape[2] - crop))
+        ny, nx = c.shape[1] - crop + 1, c.shape[2] - crop + 1
+        y = int(rng.integers(ny))
+        x = int(rng.integers(nx))
+        weight = 1.0
+        if focus is not None and focus[k][a].any():
+            q = focus[k][a]
+            if rng.random() < focus_frac:
+                i = int(rng.choice(q.size, p=q.ravel()))
+                y, x = divmod(i, nx)
+            uniform = 1.0 / (ny * nx)
+            weight = uniform / ((1 - focus_frac) * uniform + focus_frac * float(q[y, x]))
         w = c[a : a + T, y : y + crop, x : x + crop]
         rows = row_heights(c.shape[1])[y : y + crop]
-        return (w.flip(-1) if rng.random() < 0.5 else w), rows
+        return (w.flip(-1) if rng.random() < 0.5 else w), rows, weight
 
     @torch.no_grad()
     def _update_ema(self, decay: float) -> None:
