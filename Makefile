@@ -33,7 +33,7 @@ demo/synth.json: | $(STAMP)
 demo-data: demo/synth.json
 
 demo: demo-data
-	$(BIN)/snakemake --cores $(CORES) --keep-going
+	$(BIN)/snakemake --cores $(CORES) --keep-going --rerun-incomplete
 	$(BIN)/snakemake --report results/report.html
 	@echo "Report: results/report.html; campaign page: results/campaign/index.html;"
 	@echo "metrics: results/campaign/metrics.csv (see README.md for every output)."

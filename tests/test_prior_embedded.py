@@ -242,3 +242,25 @@ def test_focused_window_weights_are_unbiased():
     p_dark = hit_y.mean() * hit_x.mean()
     assert abs(weights.mean() - 1.0) < 0.05
     assert abs(np.mean(weights * dark) - p_dark) < 0.03
+
+
+def test_clean_video_prediction_lands_on_the_clean_video():
+    """``predict: x``: a network that returns the clean video exactly gives the exact
+    velocity ε − x0 of the straight path, so SDEdit's Euler steps end on the video."""
+    torch.set_num_threads(1)
+    prior = EmbeddedPrior({**SMALL, "predict": "x", "sample_steps": 10, "position": False})
+    frame = bubble_clip(2, frames=1, size=16)[0]
+    video = np.repeat(frame[None], 6, axis=0)  # the same frame: every chunk sees it
+
+    class Oracle(torch.nn.Module):
+        multiple = prior.ema.multiple
+
+        def forward(self, x, t, rows=None):
+            return (torch.from_numpy(frame) * 2 - 1).expand(x.shape).to(x.dtype)
+
+    prior.ema = Oracle()
+    out = prior.refine(video, 0.5, seed=3)  # times 0.5, 0.4, …, 0.1, 0: all above 0.05
+    np.testing.assert_allclose(out, video, atol=2e-6)
+    prior.params["predict"] = "eps"
+    with pytest.raises(ValueError, match="predict"):
+        prior.refine(video, 0.5)

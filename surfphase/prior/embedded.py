@@ -44,6 +44,8 @@ from surfphase.prior.interface import check_video
 from surfphase.prior.sdedit import check_strength, flow_sdedit_times, refine_in_chunks
 
 WEIGHTS = "embedded.pt"
+#: Smallest t in the velocity of a clean-video prediction (``predict: x``).
+X_PRED_T_MIN = 0.05
 
 DEFAULT_PARAMS: dict = {
     "frames": 8,  # frames per training window and refinement chunk
@@ -56,6 +58,7 @@ DEFAULT_PARAMS: dict = {
     "batch": 8,  # windows per step
     "lr": 1e-3,  # AdamW learning rate (cosine decay to 5 %, 20-step warm-up)
     "time_dist": "tilted",  # training times: uniform | logit_normal | tilted (density 0.5 + t)
+    "predict": "v",  # network output: v (velocity) | x (clean video; v = (x_t − x)/max(t, 0.05))
     "crop_focus": 0.0,  # fraction of training windows centred on moving content (bubbles)
     "focus_weighted": False,  # weight focused windows' losses by p_uniform/q (unbiased density)
     "ema": 0.995,  # decay of the weight average used for sampling
@@ -317,7 +320,8 @@ class EmbeddedPrior:
             noise = torch.randn(x0.shape, generator=gen).to(self.device)
             t = self._train_times(batch, gen).to(self.device)
             xt = (1 - t[:, None, None, None, None]) * x0 + t[:, None, None, None, None] * noise
-            err = (self.model(xt, t, rows=rows) - (noise - x0)).square().mean(dim=(1, 2, 3, 4))
+            v = self._velocity(self.model, xt, t, rows)
+            err = (v - (noise - x0)).square().mean(dim=(1, 2, 3, 4))
             loss = (weight * err).mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -339,6 +343,21 @@ class EmbeddedPrior:
             "loss_last50": float(np.mean(losses[-50:])),
             "losses": [round(v, 5) for v in losses],
         }
+
+    def _velocity(
+        self, net: VideoUNet, xt: torch.Tensor, t: torch.Tensor, rows: torch.Tensor
+    ) -> torch.Tensor:
+        """v(x_t, t), (B, 1, T, H, W): the network's output, or with ``predict: x`` the
+        velocity of its clean-video estimate x̂: (x_t − x̂)/max(t, 0.05). Predicting the
+        clean video asks a small network for a smooth image instead of noise (Li & He,
+        2025, "Back to basics: let denoising generative models denoise")."""
+        out = net(xt, t, rows=rows)
+        mode = self.params["predict"]
+        if mode == "v":
+            return out
+        if mode == "x":
+            return (xt - out) / t.clamp_min(X_PRED_T_MIN)[:, None, None, None, None]
+        raise ValueError(f"embedded prior: predict must be 'v' or 'x', not {mode!r}")
 
     def _train_times(self, n: int, gen: torch.Generator) -> torch.Tensor:
         """(n,) training times in (0, 1): uniform, or logit-normal (more weight mid-path,
@@ -417,7 +436,7 @@ class EmbeddedPrior:
         def velocity(x: torch.Tensor, t: float) -> torch.Tensor:
             xin = F.pad(x, (0, pw, 0, ph, 0, 0), mode="replicate") if (ph or pw) else x
             tt = torch.full((x.shape[0],), t, device=x.device)
-            return self.ema(xin, tt, rows=rows)[..., :h, :w]
+            return self._velocity(self.ema, xin, tt, rows)[..., :h, :w]
 
         for t_now, t_next in zip(times[:-1], times[1:], strict=True):
             dt = float(t_next - t_now)
