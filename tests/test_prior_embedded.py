@@ -176,8 +176,8 @@ def test_training_windows_carry_their_rows_heights_in_the_frame():
     clip = torch.arange(H, dtype=torch.float32)[None, :, None].expand(6, H, 9)  # value = row
     rng = np.random.default_rng(0)
     for _ in range(5):
-        w, rows, weight = EmbeddedPrior._window([clip], rng, 4, 8)
-        assert weight == 1.0
+        w, rows, weight, focused = EmbeddedPrior._window([clip], rng, 4, 8)
+        assert weight == 1.0 and not focused
         first = int(w[0, 0, 0])
         np.testing.assert_allclose(
             rows.numpy(), np.linspace(-1, 1, H)[first : first + 8], atol=1e-6
@@ -198,7 +198,8 @@ def test_focused_windows_contain_the_moving_content():
     data = [torch.from_numpy(clip) * 2 - 1]
     rng = np.random.default_rng(0)
     for _ in range(20):
-        w, _rows, _weight = EmbeddedPrior._window(data, rng, 4, 16, [prop], 1.0)
+        w, _rows, _weight, focused = EmbeddedPrior._window(data, rng, 4, 16, [prop], 1.0)
+        assert focused
         assert (w[0] < 0).any()  # the first frame of every window shows the square
 
 
@@ -232,8 +233,8 @@ def test_focused_window_weights_are_unbiased():
     data = [torch.from_numpy(clip)]
     rng = np.random.default_rng(0)
     draws = [EmbeddedPrior._window(data, rng, 2, 8, prop, 0.75) for _ in range(20000)]
-    weights = np.array([w for _, _, w in draws])
-    dark = np.array([float((win < 0.6).any()) for win, _, _ in draws])
+    weights = np.array([d[2] for d in draws])
+    dark = np.array([float((d[0] < 0.6).any()) for d in draws])
     assert dark.mean() > 0.6  # most focused windows show the square
     # uniform windows: the exact share of corners whose window overlaps the square
     ys, xs = np.arange(24 - 8 + 1), np.arange(24 - 8 + 1)
@@ -255,7 +256,7 @@ def test_clean_video_prediction_lands_on_the_clean_video():
     class Oracle(torch.nn.Module):
         multiple = prior.ema.multiple
 
-        def forward(self, x, t, rows=None):
+        def forward(self, x, t, rows=None, label=None):
             return (torch.from_numpy(frame) * 2 - 1).expand(x.shape).to(x.dtype)
 
     prior.ema = Oracle()
@@ -264,3 +265,22 @@ def test_clean_video_prediction_lands_on_the_clean_video():
     prior.params["predict"] = "eps"
     with pytest.raises(ValueError, match="predict"):
         prior.refine(video, 0.5)
+
+
+def test_focus_label_trains_both_classes_and_generates_uniform_windows():
+    """``focus_label``: the label embedding learns from focused (1) and uniform (0)
+    windows; sampling and refinement use class 0 only."""
+    torch.set_num_threads(1)
+    params = {**SMALL, "steps": 6, "crop_focus": 0.5, "focus_label": True}
+    prior = EmbeddedPrior(params)
+    assert not prior.model.label.weight.any()  # starts as the unlabelled network
+    prior.train([bubble_clip(0), bubble_clip(1)], log=None)
+    assert prior.model.label.weight[0].abs().sum() > 0
+    assert prior.model.label.weight[1].abs().sum() > 0
+    ref = prior.sample(1, 4, 16, seed=2)
+    with torch.no_grad():
+        prior.ema.label.weight[1] += 1e3  # class 1 is never asked for
+    np.testing.assert_array_equal(prior.sample(1, 4, 16, seed=2), ref)
+    with torch.no_grad():
+        prior.ema.label.weight[0] += 1.0
+    assert not np.array_equal(prior.sample(1, 4, 16, seed=2), ref)

@@ -61,6 +61,7 @@ DEFAULT_PARAMS: dict = {
     "predict": "v",  # network output: v (velocity) | x (clean video; v = (x_t − x)/max(t, 0.05))
     "crop_focus": 0.0,  # fraction of training windows centred on moving content (bubbles)
     "focus_weighted": False,  # weight focused windows' losses by p_uniform/q (unbiased density)
+    "focus_label": False,  # tell the network focused from uniform windows; generate uniform
     "ema": 0.995,  # decay of the weight average used for sampling
     "sample_steps": 24,  # Euler steps of a full (strength 1) generation
     "sampler": "euler",  # euler | heun (2nd order: two network calls per step but the last)
@@ -133,6 +134,7 @@ class VideoUNet(nn.Module):
         emb: int = 64,
         patch: int = 1,
         position: bool = False,
+        labels: int = 0,
     ):
         super().__init__()
         ch = list(channels)
@@ -140,6 +142,9 @@ class VideoUNet(nn.Module):
         self.patch = int(patch)
         self.position = bool(position)
         self.emb = nn.Sequential(nn.Linear(emb, 2 * emb), nn.SiLU(), nn.Linear(2 * emb, emb))
+        self.label = nn.Embedding(labels, emb) if labels else None
+        if self.label is not None:
+            nn.init.zeros_(self.label.weight)  # start as the unlabelled network
         self.inp = _SpatialConv((1 + self.position) * self.patch**2, ch[0])
         self.down = nn.ModuleList()
         self.pool = nn.ModuleList()
@@ -165,14 +170,23 @@ class VideoUNet(nn.Module):
         return self.patch * 2 ** len(self.pool)
 
     def forward(
-        self, x: torch.Tensor, t: torch.Tensor, rows: torch.Tensor | None = None
+        self,
+        x: torch.Tensor,
+        t: torch.Tensor,
+        rows: torch.Tensor | None = None,
+        label: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """``rows``: (B, H) height of each image row in its frame, −1 top … 1 bottom
-        (required when the network was built with ``position``)."""
+        (required when the network was built with ``position``); ``label``: (B,) int64
+        class of each window when it was built with ``labels`` (default class 0)."""
         half = self.emb_dim // 2
         freqs = torch.exp(-math.log(1000.0) * torch.arange(half, device=x.device) / half)
         ang = 1000.0 * t[:, None].to(x.dtype) * freqs[None]
         e = self.emb(torch.cat([ang.sin(), ang.cos()], dim=1))
+        if self.label is not None:
+            if label is None:
+                label = torch.zeros(x.shape[0], dtype=torch.long, device=x.device)
+            e = e + self.label(label)
         if self.position:
             if rows is None or rows.shape != (x.shape[0], x.shape[3]):
                 raise ValueError("VideoUNet: position needs rows of shape (B, H)")
@@ -253,6 +267,7 @@ class EmbeddedPrior:
             self.params["channels"],
             patch=int(self.params["patch"]),
             position=bool(self.params["position"]),
+            labels=2 if self.params["focus_label"] else 0,
         )
         self.model = self.model.to(self.device)
         self.ema = copy.deepcopy(self.model).eval().requires_grad_(False)
@@ -271,7 +286,7 @@ class EmbeddedPrior:
             unknown = set(params) - set(DEFAULT_PARAMS)
             if unknown:
                 raise ValueError(f"embedded prior: unknown parameters {sorted(unknown)}")
-            arch = {"channels", "patch", "position"} & {
+            arch = {"channels", "patch", "position", "focus_label"} & {
                 k for k in params if params[k] != self.params[k]
             }
             if arch:
@@ -311,16 +326,17 @@ class EmbeddedPrior:
                 self._window(data, rng, T, crop, focus, float(p["crop_focus"]))
                 for _ in range(batch)
             ]
-            x0 = torch.stack([w for w, _, _ in wins])[:, None].to(self.device)  # (B,1,T,c,c)
-            rows = torch.stack([r for _, r, _ in wins]).to(self.device)  # (B, crop)
+            x0 = torch.stack([w[0] for w in wins])[:, None].to(self.device)  # (B,1,T,c,c)
+            rows = torch.stack([w[1] for w in wins]).to(self.device)  # (B, crop)
             if p["focus_weighted"]:
-                weight = torch.tensor([w for _, _, w in wins], device=self.device)
+                weight = torch.tensor([w[2] for w in wins], device=self.device)
             else:
                 weight = torch.ones(batch, device=self.device)
+            label = torch.tensor([int(w[3]) for w in wins], device=self.device)
             noise = torch.randn(x0.shape, generator=gen).to(self.device)
             t = self._train_times(batch, gen).to(self.device)
             xt = (1 - t[:, None, None, None, None]) * x0 + t[:, None, None, None, None] * noise
-            v = self._velocity(self.model, xt, t, rows)
+            v = self._velocity(self.model, xt, t, rows, label)
             err = (v - (noise - x0)).square().mean(dim=(1, 2, 3, 4))
             loss = (weight * err).mean()
             opt.zero_grad(set_to_none=True)
@@ -345,13 +361,21 @@ class EmbeddedPrior:
         }
 
     def _velocity(
-        self, net: VideoUNet, xt: torch.Tensor, t: torch.Tensor, rows: torch.Tensor
+        self,
+        net: VideoUNet,
+        xt: torch.Tensor,
+        t: torch.Tensor,
+        rows: torch.Tensor,
+        label: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """v(x_t, t), (B, 1, T, H, W): the network's output, or with ``predict: x`` the
         velocity of its clean-video estimate x̂: (x_t − x̂)/max(t, 0.05). Predicting the
         clean video asks a small network for a smooth image instead of noise (Li & He,
-        2025, "Back to basics: let denoising generative models denoise")."""
-        out = net(xt, t, rows=rows)
+        2025, "Back to basics: let denoising generative models denoise").
+
+        ``label`` (with ``focus_label``): 1 for focused training windows, 0 (the default,
+        used for sampling and refinement) for uniform ones."""
+        out = net(xt, t, rows=rows, label=label)
         mode = self.params["predict"]
         if mode == "v":
             return out
@@ -384,8 +408,8 @@ class EmbeddedPrior:
         focus_frac: float = 0.0,
     ):
         """A random (T, crop, crop) window of a random clip, mirrored left-right at random,
-        the (crop,) heights of its rows in the clip's frame (:func:`row_heights`), and its
-        importance weight.
+        the (crop,) heights of its rows in the clip's frame (:func:`row_heights`), its
+        importance weight, and whether it was centred on moving content.
 
         With ``focus`` (per clip the (T_i, H_i − crop + 1, W_i − crop + 1)
         :func:`focus_proposal` of its :func:`activity_map`), a fraction ``focus_frac`` of
@@ -396,7 +420,8 @@ class EmbeddedPrior:
         loss an unbiased estimate of the loss over uniform windows, so that the network
         keeps the clips' bubble density while seeing more bubble windows (measured in
         BENCHMARKS.md: it then also learns the bubbles as slowly as from uniform windows).
-        Without ``focus`` the weight is 1.
+        Without ``focus`` the weight is 1. With ``focus_label`` the network is told
+        instead which windows were focused, and generates uniform ones.
 
         No vertical flips or time reversal: bubbles rise, and the prior should know it.
         """
@@ -406,17 +431,18 @@ class EmbeddedPrior:
         ny, nx = c.shape[1] - crop + 1, c.shape[2] - crop + 1
         y = int(rng.integers(ny))
         x = int(rng.integers(nx))
-        weight = 1.0
+        weight, focused = 1.0, False
         if focus is not None and focus[k][a].any():
             q = focus[k][a]
             if rng.random() < focus_frac:
                 i = int(rng.choice(q.size, p=q.ravel()))
                 y, x = divmod(i, nx)
+                focused = True
             uniform = 1.0 / (ny * nx)
             weight = uniform / ((1 - focus_frac) * uniform + focus_frac * float(q[y, x]))
         w = c[a : a + T, y : y + crop, x : x + crop]
         rows = row_heights(c.shape[1])[y : y + crop]
-        return (w.flip(-1) if rng.random() < 0.5 else w), rows, weight
+        return (w.flip(-1) if rng.random() < 0.5 else w), rows, weight, focused
 
     @torch.no_grad()
     def _update_ema(self, decay: float) -> None:
