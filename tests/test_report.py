@@ -179,6 +179,15 @@ def test_campaign_page(tmp_path):
         campaign_page(csv, out, {"s1": [tmp_path / "nope.png"]})
     with pytest.raises(FileNotFoundError, match="absent.csv"):
         campaign_page(tmp_path / "absent.csv", out)
+    grid = tmp_path / "samples.png"
+    grid.write_bytes(b"\x89PNG\r\n\x1a\nprior-grid")
+    campaign_page(csv, out, prior_samples=grid)
+    page = out.read_text()
+    assert "Video prior" in page
+    datas = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
+    assert [base64.b64decode(d) for d in datas] == [grid.read_bytes()]
+    with pytest.raises(FileNotFoundError, match="prior sample grid"):
+        campaign_page(csv, out, prior_samples=tmp_path / "none.png")
 
 
 def test_commands(tables, tmp_path, capsys):

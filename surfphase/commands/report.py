@@ -99,7 +99,14 @@ def _page(args: argparse.Namespace) -> int:
         meshes[session] = sorted((folder / "meshes").glob("*.png"))
         videos[session] = sorted((folder / "videos").glob("*.mp4"))
     summary = campaign_page(
-        args.metrics, args.out, figures, overlays, args.title, meshes=meshes, videos=videos
+        args.metrics,
+        args.out,
+        figures,
+        overlays,
+        args.title,
+        meshes=meshes,
+        videos=videos,
+        prior_samples=args.prior_samples,
     )
     n_videos = sum(map(len, videos.values()))
     print(
@@ -176,4 +183,7 @@ def register(subparsers) -> None:
         "--session-report", nargs="*", metavar="SESSION=FOLDER", help="per-session figures"
     )
     c.add_argument("--title", default="SurfPhase campaign", help="page title")
+    c.add_argument(
+        "--prior-samples", default=None, help="the video prior's samples.png (train-prior)"
+    )
     c.set_defaults(func=_page)

@@ -316,6 +316,7 @@ def campaign_page(
     title: str = "SurfPhase campaign",
     meshes: Mapping[str, Sequence[str | os.PathLike]] | None = None,
     videos: Mapping[str, Sequence[str | os.PathLike]] | None = None,
+    prior_samples: str | os.PathLike | None = None,
 ) -> pd.DataFrame:
     """Write one self-contained HTML page of the campaign; returns its summary table.
 
@@ -334,6 +335,8 @@ def campaign_page(
         overlays: ``{session: [png, ...]}`` shown three to a row (mask overlays).
         meshes: ``{session: [png, ...]}`` shown two to a row (mesh snapshots).
         videos: ``{session: [mp4, ...]}`` (novel-view videos; the file name is the caption).
+        prior_samples: the video prior's sample grid (``train-prior``'s ``samples.png``:
+            training clips above the black band, videos generated from noise below).
     """
     metrics_csv = Path(metrics_csv)
     if not metrics_csv.is_file():
@@ -374,6 +377,16 @@ def campaign_page(
         full.to_html(float_format=_fmt, na_rep="–"),
         "</details>",
     ]
+    if prior_samples is not None:
+        prior_samples = Path(prior_samples)
+        if not prior_samples.is_file():
+            raise FileNotFoundError(f"{prior_samples}: prior sample grid not found")
+        parts += [
+            "<h2>Video prior</h2>",
+            "<p>Training clips above the black band; below it, videos the prior generated "
+            "from pure noise (frames left to right).</p>",
+            _img_tag(prior_samples, "video prior samples"),
+        ]
     for _, row in table.iterrows():
         session = row["session"]
         files = {k: [Path(p) for p in v.get(session, ())] for k, v in media.items()}

@@ -131,6 +131,11 @@ rule campaign_page:
     params:
         surfphase=SURFPHASE,
         reports=" ".join(shlex.quote(f"{s}={RESULTS}/{s}/report") for s in SESSIONS),
+        prior=lambda wc, input: (
+            f"--prior-samples {shlex.quote(os.path.join(input.prior, 'samples.png'))}"
+            if "prior" in input.keys()
+            else ""
+        ),
         code=code_version("report", "commands/report"),
     log:
         "logs/campaign_page/all.log",
@@ -140,4 +145,4 @@ rule campaign_page:
         "../../envs/surfphase.yaml"
     shell:
         "{params.surfphase} campaign-page --metrics {input.metrics:q} --out {output:q}"
-        " --session-report {params.reports} > {log:q} 2>&1"
+        " --session-report {params.reports} {params.prior} > {log:q} 2>&1"
