@@ -37,6 +37,6 @@ def session_report_extras(wc):
         extras["meshes"] = expand(f"{RESULTS}/{{session}}/report/meshes", session=SESSIONS)
     if has_novel_views():
         extras["videos"] = expand(f"{RESULTS}/{{session}}/report/videos.html", session=SESSIONS)
-    if rules.has("train_prior"):
+    if REFINE:  # the prior is trained only when the refinement is on
         extras["prior"] = f"{RESULTS}/prior"
     return extras
