@@ -153,7 +153,7 @@ class _LinearField(torch.nn.Module):
 
     multiple = 1
 
-    def forward(self, x, t, rows=None):
+    def forward(self, x, t, rows=None, label=None):
         return x
 
 

@@ -382,7 +382,7 @@ class EmbeddedPrior:
 
         ``label`` (with ``focus_label``): 1 for focused training windows, 0 (the default,
         used for sampling and refinement) for uniform ones."""
-        out = net(xt, t, rows=rows) if label is None else net(xt, t, rows=rows, label=label)
+        out = net(xt, t, rows=rows, label=label)
         mode = self.params["predict"]
         if mode == "v":
             return out
