@@ -149,3 +149,58 @@ def test_mesh_chamfer_of_shifted_cube(tmp_path):
     B = geometry.sample_surface(*geometry.read_ply(tmp_path / "b.ply"), 1500, 1)
     assert res["mean_mm"] == pytest.approx(_brute_chamfer(A, B)[0], rel=1e-9)
     assert 0.05 < res["mean_mm"] < 0.5
+
+
+def test_in_all_views_by_hand():
+    """A camera at z = −0.1 m looking along +z, fx = fy = 100 px, 64×48 pixels with the
+    principal point at the centre: u = 31.5 ± 100·x/0.1 must lie in −0.5 … 63.5 and
+    v in −0.5 … 47.5; points behind the camera are out whatever their projection."""
+    from surfphase.cameras import look_at
+
+    cam = look_at("c", [0, 0, -0.1], [0, 0, 0], 100.0, 64, 48)
+    pts = np.array(
+        [
+            [0, 0, 0],  # centre
+            [0.0319, 0, 0],  # |u − 31.5| = 31.9: on the image, just
+            [0.0321, 0, 0],  # |u − 31.5| = 32.1: off it
+            [0, 0.0239, 0],  # image v runs along −y: v = 23.5 − 23.9 = −0.4, inside
+            [0, -0.0241, 0],  # v = 23.5 + 24.1 = 47.6: outside
+            [0, 0, -0.2],  # behind
+        ]
+    )
+    uv = cam.project(pts[:5])
+    by_hand = (uv[:, 0] >= -0.5) & (uv[:, 0] <= 63.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= 47.5)
+    assert by_hand.tolist() == [True, True, False, True, False]
+    assert geometry.in_all_views(pts, [cam]).tolist() == [*by_hand.tolist(), False]
+    # Two cameras: the intersection of what each sees.
+    side = look_at("s", [-0.1, 0, 0], [0, 0, 0], 100.0, 64, 48)
+    both = geometry.in_all_views(pts, [cam, side])
+    assert (
+        both.tolist()
+        == (geometry.in_all_views(pts, [cam]) & geometry.in_all_views(pts, [side])).tolist()
+    )
+
+
+def test_mesh_chamfer_restricted_to_the_input_views(tmp_path):
+    """The true mesh has a second cube outside the camera's view: the restricted Chamfer
+    ignores it and equals the brute force on the samples each camera sees."""
+    from surfphase.cameras import look_at
+
+    v, f = _box()
+    far = v + [0.08, 0, 0]  # 80 mm to the side, outside a ±32 mm field at 0.1 m
+    _write_binary_ply(tmp_path / "pred.ply", v + [0.2e-3, 0, 0], f)
+    _write_binary_ply(tmp_path / "true.ply", np.vstack([v, far]), np.vstack([f, f + 8]))
+    cam = look_at("c", [1e-3, 1e-3, -0.1], [1e-3, 1e-3, 0], 100.0, 64, 64)
+    whole = geometry.mesh_chamfer(tmp_path / "pred.ply", tmp_path / "true.ply", n=3000)
+    seen = geometry.mesh_chamfer(tmp_path / "pred.ply", tmp_path / "true.ply", 3000, 0, [cam])
+    A = geometry.sample_surface(*geometry.read_ply(tmp_path / "pred.ply"), 3000, 0)
+    B = geometry.sample_surface(*geometry.read_ply(tmp_path / "true.ply"), 3000, 1)
+    B = B[B[:, 0] < 0.04]  # the near cube's samples: what the camera sees
+    assert seen["points_pred"] == 3000 and seen["points_true"] == len(B)
+    assert 1000 < len(B) < 2000  # about half the area is the far cube
+    assert seen["mean_mm"] == pytest.approx(_brute_chamfer(A, B)[0], rel=1e-9)
+    assert seen["mean_mm"] < 0.2 < whole["mean_mm"]
+    # Nothing true in view: NaN, not a number that averages in.
+    _write_binary_ply(tmp_path / "far.ply", far, f)
+    none = geometry.mesh_chamfer(tmp_path / "pred.ply", tmp_path / "far.ply", 500, 0, [cam])
+    assert np.isnan(none["mean_mm"]) and none["points_true"] == 0

@@ -265,6 +265,43 @@ def test_region_metrics_ignore_the_background(session, tmp_path):
     assert m3["heldout"]["mid"]["region"]["pixels"] > 3 * r["pixels"]
 
 
+def test_heldout_over_the_reference_frame_against_the_noiseless_views(session, tmp_path):
+    """With ``views_background`` and ``views_clean``, ``heldout`` renders the bubbles over
+    the held-out camera's own reference frame and compares with the noiseless views:
+    noiseless views made exactly so give L1 ≈ 0 (16-bit rounding), while
+    ``heldout_whole`` keeps the recorded views over the input backgrounds (render +
+    0.1, so L1 0.1 as in the plain case)."""
+    s = session
+    gt2 = tmp_path / "gt"
+    shutil.copytree(s["gt"], gt2)
+    mid = s["mid"]
+    yy, xx = np.mgrid[0 : mid.height, 0 : mid.width]
+    ref = 0.5 + 0.3 * xx / mid.width - 0.1 * yy / mid.height  # a backlight the inputs lack
+    (gt2 / "views_background").mkdir()
+    cv2.imwrite(str(gt2 / "views_background" / "mid.png"), np.round(ref * 65535).astype(np.uint16))
+    ref16 = np.round(ref * 65535) / 65535
+    for t, f in enumerate(FRAMES[:4]):
+        bg = ref16.reshape(1, mid.height, mid.width, 1).astype(np.float32)
+        img = render_surfels(s["surfels"], t, [mid], "cpu", bg)[0, ..., 0]
+        (gt2 / "views_clean" / "mid").mkdir(parents=True, exist_ok=True)
+        q = np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16)
+        cv2.imwrite(str(gt2 / "views_clean" / "mid" / f"{f:06d}.png"), q)
+    m = run_evaluate(s["ingest"], s["masks"], s["fit"], tmp_path / "eval", gt_dir=gt2)
+    assert "views_background" in m["settings"]["heldout"]
+    h, w = m["heldout"]["mid"], m["heldout_whole"]["mid"]
+    assert h["frames"] == 4 and h["l1"] < 1e-5 and h["psnr"] > 90
+    assert w["frames"] == 4 and w["l1"] == pytest.approx(0.1, abs=2e-5)
+    assert m["heldout_whole"]["mean"]["psnr"] == pytest.approx(20.0, abs=0.01)
+    # Without the reference frames the protocol is the plain one and there is no "whole".
+    plain = run_evaluate(s["ingest"], s["masks"], s["fit"], tmp_path / "e2", gt_dir=s["gt"])
+    assert "heldout_whole" not in plain and "mean background" in plain["settings"]["heldout"]
+    table = campaign_table([m])
+    assert "heldout_whole.mean.psnr" in table.columns
+    assert list(table.columns).index("heldout.mean.region.psnr") < list(table.columns).index(
+        "heldout_whole.mean.psnr"
+    )
+
+
 def test_stage1_and_ablations(session, tmp_path, capsys):
     """Stage 1: exact velocities, same surfels; ablation no_sdf: both bubbles off by
     0.1 m/s in vx, no surfels (no held-out views); ablation no_guidance: bubble 2 off by

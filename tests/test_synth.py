@@ -259,6 +259,30 @@ def test_images_look_backlit(tiny):
     assert fg.max() > 0.5 * bg.mean()  # ... with a bright core
 
 
+def test_heldout_clean_views_and_reference_frames(tiny):
+    """The noiseless held-out views differ from the recorded ones by sensor noise alone
+    (zero mean, σ near √(I/full_well) ≈ 0.018 at the backlight), and the reference frame
+    equals the noiseless view wherever no bubble is near."""
+    gt = tiny / "session01" / "gt"
+    for name in ("mid", "orbit05"):
+        ref = cv2.imread(str(gt / "views_background" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
+        assert ref.dtype == np.uint16
+        ref = ref / 65535.0
+        for f in (0, 3):
+            rec = cv2.imread(str(gt / "views" / name / f"{f:06d}.png"), cv2.IMREAD_UNCHANGED)
+            clean = cv2.imread(str(gt / "views_clean" / name / f"{f:06d}.png"), -1)
+            assert clean.dtype == np.uint16 and clean.shape == rec.shape == ref.shape
+            noise = rec / 255.0 - clean / 65535.0
+            bright = clean / 65535.0 > 0.6
+            assert abs(noise[bright].mean()) < 0.004
+            assert 0.012 < noise[bright].std() < 0.026
+            # Away from bubbles (where the noiseless view equals the reference to 16-bit
+            # rounding), and those pixels are most of the image.
+            same = np.abs(clean / 65535.0 - ref) < 2e-5
+            assert same.mean() > 0.5
+            assert (np.abs(clean / 65535.0 - ref) > 0.05).any()  # the bubbles are not in it
+
+
 def test_write_campaign_refuses_non_empty_folder(tmp_path):
     (tmp_path / "x").mkdir()
     (tmp_path / "x" / "keep.txt").write_text("mine")

@@ -11,22 +11,30 @@ Inputs (folders of earlier stages):
   final fit, and optionally the stage-1 fit and ablation fits in the same format;
 * ``GT`` (synthetic sessions only) — ``cameras.json``, ``bubbles.csv`` (with ``r_eq``
   for the region metrics),
-  ``views/<cam>/<frame:06d>.png``, ``meshes/<frame:06d>.ply``;
+  ``views/<cam>/<frame:06d>.png`` (held-out views as recorded), optionally
+  ``views_clean/<cam>/<frame:06d>.png`` (the same without sensor noise) and
+  ``views_background/<cam>.png`` (each held-out camera's reference frame without
+  bubbles), ``meshes/<frame:06d>.ply``;
 * ``MESHES`` (optional, from the mesh stage) — ``<frame:06d>.ply``, metres.
 
 Outputs in ``OUT`` (each written whole or not at all):
 
 * ``metrics.json`` — ``session``; ``heldout`` (per held-out camera and ``mean``: ``l1``,
   ``psnr`` dB, ``ssim``, ``frames`` over the full frame, and ``region``: the same inside
-  the true bubbles' region, :mod:`.regions`, with ``pixels`` its mean size);
+  the true bubbles' region, :mod:`.regions`, with ``pixels`` its mean size; the
+  protocol is in ``settings.heldout``: with ``views_clean`` and ``views_background`` the
+  reconstructed bubbles are rendered over the held-out camera's reference frame and
+  compared with the noiseless views, and ``heldout_whole`` then holds the figures of
+  the whole image predicted — the input views' mean background behind the bubbles,
+  compared with the recorded views);
   ``velocity`` (``method`` and ``baseline``: ``mean_abs_error_mps``,
   ``relative_error``, ``mean_speed_gt_mps``, ``matched``); ``chamfer_mm`` (with method
   meshes); ``reference2d`` (always: the 2D reference's relative x/y errors of ``method``
   and ``baseline``; with ground truth also ``truth``, the true velocities of the
   baseline-matched bubbles against the reference, which scores the reference itself);
   ``stage1`` (with a stage-1 fit) and ``ablations`` ``{name: …}`` (with ablation fits):
-  each ``fit`` (its folder), ``velocity`` (errors as the method's), ``heldout`` (as
-  above) and ``reference2d`` (its errors against the 2D reference); non-finite numbers
+  each ``fit`` (its folder), ``velocity`` (errors as the method's), ``heldout`` and
+  ``heldout_whole`` (as above) and ``reference2d`` (its errors against the 2D reference); non-finite numbers
   are ``null``;
 * ``baseline_bubbles.csv`` — the two-view centroid baseline (:mod:`.baseline`);
 * ``velocity_table.csv`` — one row per compared bubble-frame, column ``source``
@@ -144,6 +152,7 @@ def heldout_metrics(
     device: str = "cpu",
     truth: pd.DataFrame | None = None,
     region_scale: float = regions.REGION_SCALE,
+    backdrops_dir: Path | None = None,
 ) -> dict:
     """L1, PSNR (dB) and SSIM of the surfels rendered into held-out cameras, over the
     full frame and, with ``truth``, inside the bubbles' region.
@@ -151,8 +160,9 @@ def heldout_metrics(
     Every frame of ``surfels`` (``frame`` = session frame index) that has
     ``views_dir/<cam>/<frame:06d>.png`` is rendered and compared; the per-camera values
     are means over frames, ``mean`` the mean over cameras. The fit reconstructs only the
-    bubbles: behind them a held-out view sees the mean of the input views' background
-    images when they have its size, else the fit's constant background colour.
+    bubbles: behind them a held-out view sees its camera's reference frame
+    ``backdrops_dir/<cam>.png`` when there is one, else the mean of the input views'
+    background images when they have its size, else the fit's constant background colour.
 
     With ``truth`` (the true bubbles: ``frame, x, y, z, r_eq``, metres), each camera also
     gets ``region``: the same metrics restricted to :func:`surfphase.eval.regions.
@@ -179,7 +189,16 @@ def heldout_metrics(
                     f"is {cam.width}×{cam.height}"
                 )
             bg = None
-            if bg_images is not None and bg_images.shape[1:3] == (cam.height, cam.width):
+            backdrop = backdrops_dir / f"{cam.name}.png" if backdrops_dir is not None else None
+            if backdrop is not None and backdrop.exists():
+                ref = read_view(backdrop)
+                if ref.shape[:2] != (cam.height, cam.width):
+                    raise ValueError(
+                        f"{backdrop}: image is {ref.shape[1]}×{ref.shape[0]}, camera "
+                        f"{cam.name} is {cam.width}×{cam.height}"
+                    )
+                bg = ref.reshape(1, cam.height, cam.width, -1).astype(np.float32)
+            elif bg_images is not None and bg_images.shape[1:3] == (cam.height, cam.width):
                 bg = bg_images.mean(axis=0, keepdims=True)
             rgb = render_surfels(surfels, t, [cam], device, bg)[0].astype(np.float64)
             if target.ndim == 2:
@@ -235,24 +254,37 @@ def chamfer_per_frame(
     frames: Sequence[int],
     n_points: int = 20000,
     seed: int = 0,
+    cameras: Sequence[Camera] | None = None,
 ) -> dict:
     """Chamfer (mm) of ``meshes_dir/<frame:06d>.ply`` against the true mesh of each frame
-    that has both; ``mean_mm``/``mean_sq_mm2`` averaged over frames, and ``per_frame``."""
-    per = {}
+    that has both; ``mean_mm``/``mean_sq_mm2`` averaged over frames, and ``per_frame``.
+
+    With the input ``cameras`` (true ones), the comparison is restricted to the volume
+    they all see (:func:`surfphase.eval.geometry.in_all_views`); ``whole_truth_mean_mm``
+    is then the mean over frames without that restriction, for reference. Frames with
+    nothing to compare in that volume are left out of the means (``frames`` counts the
+    rest)."""
+    per, whole = {}, []
     for f in frames:
         name = f"{int(f):06d}.ply"
         a, b = meshes_dir / name, gt_meshes_dir / name
         if a.exists() and b.exists():
-            per[int(f)] = geometry.mesh_chamfer(a, b, n_points, seed)
+            per[int(f)] = geometry.mesh_chamfer(a, b, n_points, seed, cameras)
+            if cameras is not None:
+                whole.append(geometry.mesh_chamfer(a, b, n_points, seed)["mean_mm"])
     if not per:
         return {}
-    return {
-        "mean_mm": float(np.mean([v["mean_mm"] for v in per.values()])),
-        "mean_sq_mm2": float(np.mean([v["mean_sq_mm2"] for v in per.values()])),
-        "frames": len(per),
+    out = {
+        "mean_mm": _nanmean([v["mean_mm"] for v in per.values()]),
+        "mean_sq_mm2": _nanmean([v["mean_sq_mm2"] for v in per.values()]),
+        "frames": int(sum(np.isfinite(v["mean_mm"]) for v in per.values())),
         "points_per_mesh": n_points,
-        "per_frame": {str(k): v for k, v in per.items()},
     }
+    if cameras is not None:
+        out["volume"] = "seen by every input camera (" + ", ".join(c.name for c in cameras) + ")"
+        out["whole_truth_mean_mm"] = float(np.mean(whole))
+    out["per_frame"] = {str(k): v for k, v in per.items()}
+    return out
 
 
 def _finite(obj):
@@ -374,12 +406,17 @@ def run_evaluate(
         if views_dir.is_dir():
             gt_cams = load_cameras(gt_dir / "cameras.json")
             held = [c for n, c in gt_cams.items() if (views_dir / n).is_dir()]
-        held_out = _fit_heldout(fit_dir, held, gt_dir, dev, region_truth, region_scale)
-        if held_out is not None:
-            metrics["heldout"] = held_out
+        if held:
+            metrics["settings"]["heldout"] = heldout_protocol(gt_dir)
+        metrics.update(_fit_heldout(fit_dir, held, gt_dir, dev, region_truth, region_scale))
         if meshes_dir is not None:
+            gt_cams = load_cameras(gt_dir / "cameras.json")
+            inputs = [gt_cams[c.name] for c in data["cameras"] if c.name in gt_cams]
             metrics["chamfer_mm"] = chamfer_per_frame(
-                Path(meshes_dir), gt_dir / "meshes", data["frames"].tolist()
+                Path(meshes_dir),
+                gt_dir / "meshes",
+                data["frames"].tolist(),
+                cameras=inputs if len(inputs) == len(data["cameras"]) else None,
             )
     cams = {c.name: (c, lab) for c, lab in zip(data["cameras"], data["labels"], strict=True)}
     ref_name = reference_camera or data["cameras"][0].name
@@ -408,9 +445,7 @@ def run_evaluate(
             res["velocity"] = velocity.velocity_errors(m)
             m.insert(0, "source", label)
             tables.append(m)
-            held_out = _fit_heldout(d, held, gt_dir, dev, region_truth, region_scale)
-            if held_out is not None:
-                res["heldout"] = held_out
+            res.update(_fit_heldout(d, held, gt_dir, dev, region_truth, region_scale))
         res["reference2d"] = reference2d.compare_to_reference(keep(pred), ref, ref_cam)[0]
         if label == "stage1":
             metrics["stage1"] = res
@@ -432,16 +467,51 @@ def _fit_heldout(
     device: str,
     region_truth: pd.DataFrame | None,
     region_scale: float,
-) -> dict | None:
-    """:func:`heldout_metrics` of ``fit_dir/surfels.npz``, or None without surfels or
-    held-out cameras."""
+) -> dict:
+    """``{"heldout": …}`` (:func:`heldout_metrics` of ``fit_dir/surfels.npz`` under
+    :func:`heldout_protocol`) and, when that protocol is not the recorded views over the
+    input backgrounds, ``"heldout_whole"`` (the recorded views, the whole image
+    predicted); ``{}`` without surfels or held-out cameras."""
     surfels_path = fit_dir / "surfels.npz"
     if not held or not surfels_path.exists():
-        return None
+        return {}
     from surfphase.fit.outputs import load_surfels
 
-    return heldout_metrics(
-        load_surfels(surfels_path), held, gt_dir / "views", device, region_truth, region_scale
+    surfels = load_surfels(surfels_path)
+    views, backdrops = _heldout_sources(gt_dir)
+    out = {
+        "heldout": heldout_metrics(
+            surfels, held, views, device, region_truth, region_scale, backdrops
+        )
+    }
+    if (views, backdrops) != (gt_dir / "views", None):
+        out["heldout_whole"] = heldout_metrics(
+            surfels, held, gt_dir / "views", device, region_truth, region_scale
+        )
+    return out
+
+
+def _heldout_sources(gt_dir: Path) -> tuple[Path, Path | None]:
+    """(views compared with, backdrops folder or None) of the held-out protocol."""
+    clean, backdrops = gt_dir / "views_clean", gt_dir / "views_background"
+    if clean.is_dir() and backdrops.is_dir():
+        return clean, backdrops
+    return gt_dir / "views", None
+
+
+def heldout_protocol(gt_dir: Path) -> str:
+    """One line saying what the held-out figures of ``gt_dir`` compare."""
+    views, backdrops = _heldout_sources(Path(gt_dir))
+    if backdrops is not None:
+        return (
+            "heldout: the reconstructed bubbles over each held-out camera's reference frame "
+            "(views_background), against the noiseless views (views_clean); heldout_whole: "
+            "the whole image predicted (the input views' mean background behind the "
+            "bubbles), against the recorded views"
+        )
+    return (
+        "heldout: the reconstructed bubbles over the input views' mean background, against "
+        "the recorded views"
     )
 
 
@@ -469,8 +539,10 @@ def campaign_table(metrics: Sequence[dict]) -> pd.DataFrame:
         r"heldout\.mean\.(?!region)", r"stage1\.heldout\.mean\.(?!region)",
         r"ablations\.[^.]+\.heldout\.mean\.(?!region)", r"heldout\.mean\.region\.",
         r"stage1\.heldout\.mean\.region\.", r"ablations\.[^.]+\.heldout\.mean\.region\.",
+        r"heldout_whole\.mean\.", r"stage1\.heldout_whole\.mean\.",
+        r"ablations\.[^.]+\.heldout_whole\.mean\.",
         r"chamfer_mm\.", r"reference2d\.", r"stage1\.reference2d\.",
-        r"ablations\.[^.]+\.reference2d\.", r"heldout\.",
+        r"ablations\.[^.]+\.reference2d\.", r"heldout\.", r"heldout_whole\.",
     ]  # fmt: skip
     cols: list[str] = []
     for group in order:
@@ -483,6 +555,7 @@ def campaign_table(metrics: Sequence[dict]) -> pd.DataFrame:
 def _means_only(fit_metrics: dict) -> dict:
     """A stage-1 / ablation entry without its per-camera held-out values."""
     out = dict(fit_metrics)
-    if isinstance(out.get("heldout"), dict):
-        out["heldout"] = {k: v for k, v in out["heldout"].items() if k == "mean"}
+    for key in ("heldout", "heldout_whole"):
+        if isinstance(out.get(key), dict):
+            out[key] = {k: v for k, v in out[key].items() if k == "mean"}
     return out

@@ -27,6 +27,8 @@ COMPARISON_COLUMNS = {
     "bubble-region PSNR dB": ("region", "psnr"),
     "bubble-region SSIM": ("region", "ssim"),
     "bubble-region L1": ("region", "l1"),
+    "held-out PSNR dB, whole image predicted": ("whole", "psnr"),
+    "held-out SSIM, whole image predicted": ("whole", "ssim"),
 }
 
 
@@ -50,12 +52,14 @@ def _sources(flat: Mapping) -> dict[str, dict[str, str]]:
             "reference2d": "reference2d.method.",
             "heldout": "heldout.mean.",
             "region": "heldout.mean.region.",
+            "whole": "heldout_whole.mean.",
         },
         "stage 1 (no refinement)": {
             "velocity": "stage1.velocity.",
             "reference2d": "stage1.reference2d.",
             "heldout": "stage1.heldout.mean.",
             "region": "stage1.heldout.mean.region.",
+            "whole": "stage1.heldout_whole.mean.",
         },
         "baseline (two-view triangulation)": {
             "velocity": "velocity.baseline.",
@@ -70,6 +74,7 @@ def _sources(flat: Mapping) -> dict[str, dict[str, str]]:
             "reference2d": p + "reference2d.",
             "heldout": p + "heldout.mean.",
             "region": p + "heldout.mean.region.",
+            "whole": p + "heldout_whole.mean.",
         }
     return rows
 
@@ -120,7 +125,10 @@ SUMMARY_COLUMNS = {
     "heldout.mean.region.ssim": "bubble-region SSIM",
     "stage1.heldout.mean.psnr": "held-out PSNR dB (stage 1)",
     "stage1.heldout.mean.region.psnr": "bubble-region PSNR dB (stage 1)",
+    "heldout_whole.mean.psnr": "held-out PSNR dB, whole image predicted",
+    "heldout_whole.mean.ssim": "held-out SSIM, whole image predicted",
     "chamfer_mm.mean_mm": "Chamfer mm",
+    "chamfer_mm.whole_truth_mean_mm": "Chamfer mm against the whole truth",
     "frames": "frames",
 }
 

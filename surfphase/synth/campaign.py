@@ -17,7 +17,10 @@ Layout under ``out`` (paths in the TSVs are relative to the TSV's folder)::
     <session>/gt/merges.csv            t (s), frame (first frame showing the merged bubble),
                                        parent_a, parent_b, merged (bubble ids)
     <session>/gt/meshes/000000.ply     true surface per frame, metres (binary PLY)
-    <session>/gt/views/<cam>/000000.png  held-out views at fit size
+    <session>/gt/views/<cam>/000000.png  held-out views at fit size, as recorded (noisy)
+    <session>/gt/views_clean/<cam>/000000.png  the same without sensor noise, 16-bit
+    <session>/gt/views_background/<cam>.png  the held-out camera's reference frame without
+                                       bubbles (backlight and plate), noiseless, 16-bit
     <session>/gt/masks/<cam>.npy       int32 (frames, H, W) at the raw videos' native size:
                                        id of the bubble seen through each pixel's ray, -1 =
                                        background or plate (ids start at 1; 0 is unused)
@@ -151,6 +154,10 @@ def _write_session(sdir: Path, scene: BubbleScene, cfg: dict, seed: int, index: 
         sigmas.append(0.5)
         names.append(n)
 
+    for n, r, bg, size, sigma in zip(names, rays, bgs, sizes, sigmas, strict=True):
+        if n not in INPUTS:
+            ref = shadowgraph.empty_view(r, bg, size, sigma)
+            write_png(gt / "views_background" / f"{n}.png", shadowgraph.quantize(ref, 16))
     masks = {n: np.full((frames, native, native), -1, dtype=np.int32) for n in INPUTS}
     truths, vol_err = [], []
     t_render = t_truth = 0.0
@@ -159,13 +166,14 @@ def _write_session(sdir: Path, scene: BubbleScene, cfg: dict, seed: int, index: 
         t0 = time.perf_counter()
         rngs = [np.random.default_rng([seed, index, ci, f]) for ci in range(len(names))]
         views = shadowgraph.render_views(state, rays, bgs, rngs, sizes, sigmas)
-        for n, (img, lab) in zip(names, views, strict=True):
+        for n, (img, lab, clean) in zip(names, views, strict=True):
             q = shadowgraph.quantize(img, cfg["bit_depth"])
             if n in INPUTS:
                 write_png(sdir / n / f"{f:06d}.png", q)
                 masks[n][f] = lab
             else:
                 write_png(gt / "views" / n / f"{f:06d}.png", q)
+                write_png(gt / "views_clean" / n / f"{f:06d}.png", shadowgraph.quantize(clean, 16))
         t1 = time.perf_counter()
         tr = frame_truth(state, spacing=cfg["mesh_spacing"])
         write_ply(gt / "meshes" / f"{f:06d}.ply", tr.verts, tr.faces)

@@ -260,8 +260,9 @@ def render_views(
     out_sizes: list[tuple[int, int] | None],
     blur_sigmas: list[float],
 ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Several views of one frame: per view a noisy image (H', W') in [0, 1] and the
-    labels (H, W) int32 of the bubble seen through each ray (-1 = none).
+    """Several views of one frame: per view a noisy image (H', W') in [0, 1], the
+    labels (H, W) int32 of the bubble seen through each ray (-1 = none), and the
+    noiseless image (H', W') the noise was drawn around.
 
     A view's ``rays`` may be supersampled; its ``out_size = (W', H')`` then
     area-averages the image down (labels stay at the ray resolution). Blur σ is in
@@ -275,15 +276,33 @@ def render_views(
         clean = shade(rays, hits, bg)
         visible = np.isfinite(hits["t"]) & (hits["t"] < rays.t_plate)
         labels = np.where(visible, hits["label"], -1).reshape(rays.height, rays.width)
-        if size is not None and size != (rays.width, rays.height):
-            ss = rays.width / size[0]
-            clean = cv2.GaussianBlur(clean, (0, 0), sigma * ss)
-            clean = cv2.resize(clean, size, interpolation=cv2.INTER_AREA)
-            img = sensor(clean, rng, blur_sigma=0.0)
-        else:
-            img = sensor(clean, rng, blur_sigma=sigma)
-        out.append((img, labels.astype(np.int32)))
+        clean = optics(clean, size, sigma)
+        out.append((sensor(clean, rng, blur_sigma=0.0), labels.astype(np.int32), clean))
     return out
+
+
+def optics(clean: np.ndarray, out_size: tuple[int, int] | None, blur_sigma: float) -> np.ndarray:
+    """Noiseless image at the output size: ``clean`` (H, W) at the ray resolution,
+    Gaussian-blurred (σ in output pixels) and, when ``out_size = (W', H')`` differs,
+    area-averaged down; float64 (H', W') in [0, 1]."""
+    clean = np.asarray(clean, dtype=np.float64)
+    height, width = clean.shape
+    if out_size is not None and out_size != (width, height):
+        clean = cv2.GaussianBlur(clean, (0, 0), blur_sigma * width / out_size[0])
+        return cv2.resize(clean, out_size, interpolation=cv2.INTER_AREA)
+    if blur_sigma > 0:
+        clean = cv2.GaussianBlur(clean, (0, 0), blur_sigma)
+    return clean
+
+
+def empty_view(
+    rays: Rays, bg: np.ndarray, out_size: tuple[int, int] | None, blur_sigma: float
+) -> np.ndarray:
+    """(H', W') noiseless view of the scene without bubbles (backlight and plate): the
+    reference frame a lab records before boiling starts, through :func:`optics`."""
+    n = rays.height * rays.width
+    hits = {"t": np.full(n, np.inf), "normal": np.zeros((n, 3))}
+    return optics(shade(rays, hits, bg), out_size, blur_sigma)
 
 
 def render_frame(
@@ -294,5 +313,6 @@ def render_frame(
     out_size: tuple[int, int] | None = None,
     blur_sigma: float = 0.8,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One view of one frame; see :func:`render_views`."""
-    return render_views(state, [rays], [bg], [rng], [out_size], [blur_sigma])[0]
+    """One view of one frame, (noisy image, labels); see :func:`render_views`."""
+    img, labels, _ = render_views(state, [rays], [bg], [rng], [out_size], [blur_sigma])[0]
+    return img, labels
