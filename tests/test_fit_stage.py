@@ -43,6 +43,9 @@ def test_fit_reconstructs_and_tracks_the_rising_bubble(toy, tmp_path):
     assert s["means"].shape == (F, N, 3) and s["velocity"].shape == (F, N, 3)
     assert s["quats"].shape == (F, N, 4) and s["gamma"].shape == (F,)
     assert np.all(s["opacity"][s["alive"]] <= 1) and np.isfinite(s["sdf"][s["alive"]]).all()
+    # The heated surface (y = 0) is solid: no surfel centre below it, although the
+    # nucleation bubble's sphere reaches 0.1 mm under it (and the hull further).
+    assert s["means"][s["alive"]][:, 1].min() >= 0.0
     # Bubble 1 rises at (0.02, 0.25, 0) m/s; its centroid sits inside the true sphere.
     table = pd.read_csv(out / "bubbles.csv")
     b1 = table[table.bubble == 1].set_index("frame")
@@ -83,3 +86,14 @@ def test_read_merges_from_the_mask_events(tmp_path):
     p.write_text("frame,camera\n1,cam0\n")
     with pytest.raises(ValueError, match="events.csv"):
         read_merges(p)
+
+
+def test_without_the_floor_surfels_go_below_the_plate(toy, tmp_path):
+    """The check above is not vacuous: with ``floor_y: None`` the same fit leaves surfel
+    centres under y = 0 (the nucleation bubble's visual hull reaches below it)."""
+    torch.set_num_threads(2)
+    ingest, masks = toy
+    params = {**SMALL, "iters_first": 30, "iters_next": 5, "floor_y": None}
+    run_fit(ingest, masks, tmp_path / "fit", params, device="cpu")
+    s = load_surfels(tmp_path / "fit" / "surfels.npz")
+    assert s["means"][s["alive"]][:, 1].min() < -1e-5

@@ -84,6 +84,33 @@ def test_sphere_mesh_matches_analytic_sphere():
     assert vol == pytest.approx(4 / 3 * np.pi * R_SPHERE**3, rel=0.1)
 
 
+
+def test_mesh_is_cut_at_the_heated_surface():
+    """A sphere whose centre is 0.5 mm above the plate (y = 0): with ``floor_y = 0`` the
+    mesh stops at the plate with a flat, closed base, and its volume is the sphere's
+    less the cap below the plane (π h² (3r − h) / 3, h = r − 0.5 mm)."""
+    centre = np.array([0.0, 0.5e-3, 0.0])
+    s = sphere_surfels(centre=centre)
+    cams = []
+    for k, az in enumerate((0.0, 35.0)):
+        a = np.deg2rad(az)
+        eye = centre + 0.03 * np.array([np.sin(a), 0.0, np.cos(a)])
+        cams.append(look_at(f"cam{k}", eye, centre, fx=225.0, width=128, height=128))
+    free, _ = mesh_frame(**s, inputs=cams, p=mesh_params({"floor_y": None}))
+    assert free[:, 1].min() < -0.9e-3  # the whole sphere, down to y = −1 mm
+    verts, faces = mesh_frame(**s, inputs=cams, p=mesh_params({}))
+    voxel = 2 * (R_SPHERE + 1e-3) / 64  # about: the surfels' box over 64 voxels
+    assert verts[:, 1].min() > -voxel
+    a, b, c = verts[faces[:, 0]], verts[faces[:, 1]], verts[faces[:, 2]]
+    vol = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6
+    h = R_SPHERE - 0.5e-3
+    cut = 4 / 3 * np.pi * R_SPHERE**3 - np.pi * h**2 * (3 * R_SPHERE - h) / 3
+    assert vol == pytest.approx(cut, rel=0.1)
+    base = np.abs(verts[:, 1]) < 0.5 * voxel  # flat base: a disc of radius √(r² − c²)
+    rim = np.sqrt(R_SPHERE**2 - 0.5e-3**2)
+    assert np.hypot(verts[base, 0], verts[base, 2]).max() == pytest.approx(rim, rel=0.1)
+
+
 def test_vertex_velocity_is_nearest_surfels():
     means = np.array([[0.0, 0.0, 0.0], [0.001, 0.0, 0.0]])
     vel = np.array([[0.1, 0.0, 0.0], [0.0, -0.2, 0.3]])

@@ -120,6 +120,9 @@ DEFAULTS: dict = {
     "register_silhouette": 3.0,  # weight of |α − masks| in that fit (0: photometric only)
     "register_silhouette_all": False,  # True: every bubble; False: merged bubbles only
     "register_silhouette_frames": 3,  # ... for this many frames after their merge
+    # The heated surface (DESIGN.md: lab y = 0) is solid plate: after every step the
+    # surfel centres are put back on or above it (a projected gradient step); None = off.
+    "floor_y": 0.0,  # metres, lab frame
     # -- outputs ----------------------------------------------------------------------
     "background": "images",  # "images": per-view temporal median of background pixels;
     # "constant": one colour, the median of those; or a number in [0, 1]
@@ -392,6 +395,8 @@ def fit_frame(
             model.params["quats"].data /= (
                 model.params["quats"].data.norm(dim=-1, keepdim=True).clamp_min(1e-12)
             )
+            if p["floor_y"] is not None:
+                model.params["means"].data[:, 1].clamp_(min=float(p["floor_y"]))
         if it % p["log_every"] == 0 or it == iters - 1:
             rows.append(
                 {

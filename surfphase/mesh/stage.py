@@ -9,7 +9,8 @@ blue`` (uchar: viridis over [0, ``speed_max``] m/s); triangle faces.
 Method: the frame's alive surfels are rendered (median depth where alpha > 0.5) into the
 input cameras and ``n_orbit`` orbit views about the surfels' mean (30° steps about the
 lab +y axis from the first input camera), fused into a truncated signed distance volume
-(:mod:`surfphase.mesh.fuse`), meshed by marching cubes and cleaned with pymeshlab
+(:mod:`surfphase.mesh.fuse`), cut at the heated surface (``floor_y``: nothing lies
+below it), meshed by marching cubes and cleaned with pymeshlab
 (:mod:`surfphase.mesh.cleanup`).
 
 Resuming and windows: every finished frame is saved at once (``<frame:06d>.npz``:
@@ -60,6 +61,9 @@ DEFAULTS: dict = {
     "smooth_steps": 5,  # Taubin steps
     "max_hole_edges": 30,
     "speed_max": 0.4,  # m/s, top of the colour map; "session" = max vertex speed seen
+    # The heated surface (DESIGN.md: lab y = 0): the volume below it is solid plate, so
+    # the fused volume is cut there and bubbles sitting on it get a flat base; None = off.
+    "floor_y": 0.0,  # metres, lab frame
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }
 
@@ -123,6 +127,8 @@ def mesh_frame(
     )
     origin, shape = voxel_grid(means, voxel, float(p["margin_voxels"]) * voxel)
     sdf = fuse_depths(depths, cams, origin, shape, voxel, trunc)
+    if p["floor_y"] is not None:
+        sdf = cut_below(sdf, origin, voxel, float(p["floor_y"]), trunc)
     verts, faces = marching_cubes_mesh(sdf, origin, voxel)
     return clean_mesh(
         verts,
@@ -131,6 +137,17 @@ def mesh_frame(
         int(p["smooth_steps"]),
         int(p["max_hole_edges"]),
     )
+
+
+def cut_below(
+    sdf: np.ndarray, origin: np.ndarray, voxel: float, floor_y: float, trunc: float
+) -> np.ndarray:
+    """(nx, ny, nz) signed distance volume (metres, positive outside, voxel [0, 0, 0]
+    centred at ``origin``) intersected with the half-space y ≥ ``floor_y``: the
+    maximum of the two signed distances, the half-space's truncated at ``trunc``."""
+    y = np.asarray(origin, np.float64)[1] + voxel * np.arange(sdf.shape[1])
+    below = np.clip(floor_y - y, -trunc, trunc).astype(sdf.dtype)
+    return np.maximum(sdf, below[None, :, None])
 
 
 def _code_fingerprint() -> str:
