@@ -84,7 +84,6 @@ def test_sphere_mesh_matches_analytic_sphere():
     assert vol == pytest.approx(4 / 3 * np.pi * R_SPHERE**3, rel=0.1)
 
 
-
 def test_mesh_is_cut_at_the_heated_surface():
     """A sphere whose centre is 0.5 mm above the plate (y = 0): with ``floor_y = 0`` the
     mesh stops at the plate with a flat, closed base, and its volume is the sphere's
