@@ -82,6 +82,13 @@ def test_read_merges_from_the_mask_events(tmp_path):
         "19,cam1,merge,3+5,6\n"
     )
     assert read_merges(p) == {14: {5: {1, 2, 4}}, 19: {6: {3, 5}}}
+    # A merge row without parents (older mask stages wrote them; seen on a synthetic
+    # session with a split and two merges) is skipped, not a crash on "nan".
+    p.write_text(
+        "frame,camera,event,parents,children\n"
+        "9,cam0,merge,,5\n12,cam0,merge,6+5,7\n18,cam1,detach,0,8\n"
+    )
+    assert read_merges(p) == {12: {7: {5, 6}}}
     assert read_merges(tmp_path / "missing.csv") == {}
     p.write_text("frame,camera\n1,cam0\n")
     with pytest.raises(ValueError, match="events.csv"):

@@ -152,9 +152,11 @@ def read_merges(path: Path) -> dict[int, dict[int, set[int]]]:
     if not path.exists():
         return out
     try:
-        ev = pd.read_csv(path, dtype=str)
+        ev = pd.read_csv(path, dtype=str, keep_default_na=False)
         rows = ev[ev["event"] == "merge"]
         for f, par, chi in zip(rows["frame"], rows["parents"], rows["children"], strict=True):
+            if not par.strip():
+                continue  # no parent bubble known: nothing to take a history from
             for c in str(chi).split("+"):
                 d = out.setdefault(int(f), {}).setdefault(int(c), set())
                 d.update(int(q) for q in str(par).split("+"))

@@ -775,8 +775,9 @@ def associate(
             # Tracks with no frame left (renamed by a later merge) drop out.
             pb = [b for b in (bubble_id(c, q) for q in par) if b >= 0]
             kb = [b for b in (bubble_id(c, q) for q in kids) if b >= 0]
-            # No event left, or none in 3D (a piece of one bubble, seen apart in this view).
-            if not kb or set(kb) <= set(pb):
+            # No event left, or none in 3D (a piece of one bubble, seen apart in this view),
+            # or a merge/split whose parents all lost their frames to later renames.
+            if not kb or set(kb) <= set(pb) or (kind != "detach" and not pb):
                 continue
             ev_rows.append((t, c, kind, "+".join(map(str, pb)), "+".join(map(str, kb))))
     events = pd.DataFrame(ev_rows, columns=["frame", "camera", "event", "parents", "children"])
