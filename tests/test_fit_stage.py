@@ -104,3 +104,33 @@ def test_without_the_floor_surfels_go_below_the_plate(toy, tmp_path):
     run_fit(ingest, masks, tmp_path / "fit", params, device="cpu")
     s = load_surfels(tmp_path / "fit" / "surfels.npz")
     assert s["means"][s["alive"]][:, 1].min() < -1e-5
+
+
+def test_depth_bounds_pull_surfels_back_along_the_bisector(tmp_path):
+    """Two views 35° apart (the toy rig): a surfel 3 r behind its bubble's centre along
+    the views' mean direction comes back to k·r, one inside stays, and surfels of the
+    nucleation region (bubble 0) are left where they are. The sphere's centre and
+    radius come from the masks (centroid triangulation, equivalent radius)."""
+    from surfphase.fit.stage import SessionData, depth_bounds
+
+    ingest, masks = make_toy_session(tmp_path, frames=1, size=40)
+    data = SessionData(ingest, masks)
+    cams, labels = data.cameras, data.labels(0)
+    assert depth_bounds(cams, labels, None) is None
+    b = depth_bounds(cams, labels, 1.2)
+    axis = np.mean([c.view_dir for c in cams], axis=0)
+    axis /= np.linalg.norm(axis)
+    assert np.allclose(b.axis.numpy(), axis)
+    _, c1, r1 = toy_spheres(0, 1000.0)[1]
+    i1 = int(np.argmin(np.linalg.norm(b.centres.numpy() - c1, axis=1)))
+    c, r = b.centres[i1].numpy(), float(b.radii[i1])
+    assert np.linalg.norm(c - c1) < 0.3 * r1 and r == pytest.approx(r1, rel=0.25)
+    i0 = int(np.argmax(np.isinf(b.limits.numpy())))  # the nucleation region
+    c0 = b.centres[i0].numpy()
+    pts = torch.tensor(
+        np.stack([c + 3 * r * axis, c - 0.5 * r * axis, c0 + 1.5 * r * axis]), dtype=torch.float64
+    )
+    before = pts.clone()
+    b.apply(pts)
+    assert (pts[0].numpy() - c) @ axis == pytest.approx(1.2 * r, rel=1e-9)
+    assert torch.equal(pts[1:], before[1:])

@@ -33,7 +33,10 @@ class HullSurfels:
 
 
 def bubble_spheres(
-    cameras: Sequence[Camera], labels: Sequence[np.ndarray], min_pixels: int = 4
+    cameras: Sequence[Camera],
+    labels: Sequence[np.ndarray],
+    min_pixels: int = 4,
+    radius: str = "mean",
 ) -> dict[int, tuple[np.ndarray, float]]:
     """``{bubble: (centre (3,) m, radius m)}`` of every bubble id seen in ≥ 2 views.
 
@@ -41,7 +44,12 @@ def bubble_spheres(
         cameras: undistorted cameras, one per view.
         labels: per view an (H, W) int mask (``-1`` background).
         min_pixels: smallest mask (pixels) that counts as seen.
+        radius: ``"mean"`` or ``"max"`` over the views of the mask's equivalent radius
+            at the centre's depth (``"max"`` is not fooled by a bubble half hidden in
+            one view).
     """
+    if radius not in ("mean", "max"):
+        raise ValueError(f"radius must be 'mean' or 'max', not {radius!r}")
     ids: set[int] = set()
     for lab in labels:
         ids.update(int(b) for b in np.unique(lab[lab >= 0]))
@@ -66,7 +74,7 @@ def bubble_spheres(
             f = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
             radii.append(np.sqrt(a / np.pi) * z / f)
         if radii and np.all(np.isfinite(c)):
-            out[b] = (c, float(np.mean(radii)))
+            out[b] = (c, float(np.mean(radii) if radius == "mean" else np.max(radii)))
     return out
 
 

@@ -38,7 +38,9 @@ import json
 import os
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -123,6 +125,13 @@ DEFAULTS: dict = {
     # The heated surface (DESIGN.md: lab y = 0) is solid plate: after every step the
     # surfel centres are put back on or above it (a projected gradient step); None = off.
     "floor_y": 0.0,  # metres, lab frame
+    # Two views leave a bubble's extent along their bisector (the mean viewing direction)
+    # unseen: surfels may sit anywhere in the visual hull's long corners. With a number k,
+    # after every step a surfel farther than k·r along that axis from its bubble's centre
+    # is put back at k·r (centre and r from the frame's masks: triangulated centroids, the
+    # largest equivalent radius over the views; nearest bubble ≥ 1 by distance / r; the
+    # nucleation region is left free). None = off.
+    "depth_bound": None,
     # -- outputs ----------------------------------------------------------------------
     "background": "images",  # "images": per-view temporal median of background pixels;
     # "constant": one colour, the median of those; or a number in [0, 1]
@@ -316,6 +325,45 @@ def estimate_backgrounds(data: SessionData, n_frames: int, max_frames: int = 64)
     return out
 
 
+@dataclass
+class DepthBounds:
+    """Bubble spheres of one frame and the poorly seen axis (``depth_bound``)."""
+
+    centres: torch.Tensor  # (B, 3) metres
+    limits: torch.Tensor  # (B,) metres: k·r, inf for the nucleation region
+    radii: torch.Tensor  # (B,) metres
+    axis: torch.Tensor  # (3,) unit vector
+
+    def apply(self, means: torch.Tensor) -> None:
+        """Move (N, 3) ``means`` (metres, in place) back within the limits along the axis."""
+        c, lim, r, u = (t.to(means) for t in (self.centres, self.limits, self.radii, self.axis))
+        near = (torch.cdist(means, c) / r).argmin(dim=1)
+        d = (means - c[near]) @ u
+        excess = (d.abs() - lim[near]).clamp_min(0.0)
+        means.sub_((excess * torch.sign(d))[:, None] * u)
+
+
+def depth_bounds(
+    cameras: Sequence[Camera], labels: Sequence[np.ndarray], k: float | None
+) -> DepthBounds | None:
+    """The ``depth_bound`` of one frame's masks (see ``DEFAULTS``), or None when off or
+    no bubble is seen in two views."""
+    if k is None:
+        return None
+    spheres = init.bubble_spheres(cameras, labels, radius="max")
+    if not spheres:
+        return None
+    ids = sorted(spheres)
+    axis = np.mean([c.view_dir for c in cameras], axis=0)
+    axis /= np.linalg.norm(axis)
+    radii = np.array([spheres[b][1] for b in ids])
+    limits = np.where(np.array(ids) >= 1, float(k) * radii, np.inf)
+    as_t = partial(torch.as_tensor, dtype=torch.float64)
+    return DepthBounds(
+        as_t(np.stack([spheres[b][0] for b in ids])), as_t(limits), as_t(radii), as_t(axis)
+    )
+
+
 def fit_frame(
     model: SurfelModel,
     observed: torch.Tensor,
@@ -330,6 +378,7 @@ def fit_frame(
     geo_from: int = 0,
     view_schedule=None,
     geo_views: int | None = None,
+    bounds: DepthBounds | None = None,
 ) -> list[dict]:
     """Optimise ``model`` on one frame's (C, H, W, D) ``observed`` images. Returns the
     logged curve rows.
@@ -338,7 +387,8 @@ def fit_frame(
     the views rendered at step ``it`` ((K,) long, the first ``geo_views`` of them the
     input views) and their photometric weights ((K,)); the geometry losses and the
     logged L1/D-SSIM/PSNR then use those first ``geo_views`` views only. Without a
-    schedule every view is rendered with weight 1 (stage 1).
+    schedule every view is rendered with weight 1 (stage 1). ``bounds`` (see
+    :func:`depth_bounds`) limits the surfels' depth extent after every step.
     """
     C, H, W, D = observed.shape
     opt = make_optimizer(model, p)
@@ -399,6 +449,8 @@ def fit_frame(
             )
             if p["floor_y"] is not None:
                 model.params["means"].data[:, 1].clamp_(min=float(p["floor_y"]))
+            if bounds is not None:
+                bounds.apply(model.params["means"].data)
         if it % p["log_every"] == 0 or it == iters - 1:
             rows.append(
                 {
@@ -828,16 +880,19 @@ def run_fit(
             iters = int(p["iters_reseed"] if reseeded else p["iters_next"])
             strategy, geo_from = NoDensify(), 0
         t_opt = time.perf_counter()
+        bounds = depth_bounds(data.cameras, labels, p["depth_bound"])
         if extra_views is None:
             rows = fit_frame(
-                model, observed, viewmats, Ks, bg_t, p, iters, strategy, t, gen, geo_from=geo_from
-            )
+                model, observed, viewmats, Ks, bg_t, p, iters, strategy, t, gen,
+                geo_from=geo_from, bounds=bounds,
+            )  # fmt: skip
         else:
             nc = len(data.cameras)
             obs_all = torch.cat([observed, torch.as_tensor(extra_views.images(t), device=dev)])
             rows = fit_frame(
                 model, obs_all, fit_vm, fit_Ks, fit_bg, p, iters, strategy, t, gen,
                 geo_from=geo_from, view_schedule=extra_views.schedule(t, nc), geo_views=nc,
+                bounds=bounds,
             )  # fmt: skip
         t_done = time.perf_counter()
         with torch.no_grad():
