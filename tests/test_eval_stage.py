@@ -331,6 +331,13 @@ def test_stage1_and_ablations(session, tmp_path, capsys):
     argv += ["--fit-stage1", str(fits["stage1"])]
     argv += ["--ablation", f"no_sdf={fits['no_sdf']}"]
     argv += ["--ablation", f"no_guidance={fits['no_guidance']}"]
+    # Meshes of stage 1 (the true box shifted 0.3 mm) and of no_guidance (0.1 mm).
+    v, fc = _box()
+    for name, dy in (("stage1", 3e-4), ("no_guidance", 1e-4)):
+        (tmp_path / f"mesh_{name}").mkdir()
+        for f in FRAMES[:2]:
+            _write_binary_ply(tmp_path / f"mesh_{name}" / f"{f:06d}.ply", v + [0, dy, 0], fc)
+        argv += ["--compare-meshes", f"{name}={tmp_path / f'mesh_{name}'}"]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     assert "[stage1: velocity error 0.000" in printed and "[no_sdf: velocity error" in printed
@@ -349,6 +356,12 @@ def test_stage1_and_ablations(session, tmp_path, capsys):
     assert "heldout" not in ab["no_sdf"]
     assert ab["no_guidance"]["velocity"]["mean_abs_error_mps"] == pytest.approx(0.1, abs=1e-9)
     assert ab["no_guidance"]["heldout"]["mean"]["cameras"] == 1
+    # Chamfer of the compared meshes: a box shifted by d is within d of the truth, and the
+    # larger shift scores worse; no meshes given, no Chamfer.
+    c1, cg = st["chamfer_mm"], ab["no_guidance"]["chamfer_mm"]
+    assert c1["frames"] == 2 and cg["frames"] == 2
+    assert 0 < cg["mean_mm"] <= 0.1 < c1["mean_mm"] <= 0.3
+    assert "chamfer_mm" not in ab["no_sdf"] and "chamfer_mm" not in m
     tab = pd.read_csv(out / "velocity_table.csv")
     assert sorted(set(tab.source)) == ["baseline", "method", "no_guidance", "no_sdf", "stage1"]
     assert (tab.source == "stage1").sum() == 10
@@ -364,6 +377,14 @@ def test_stage1_and_ablations(session, tmp_path, capsys):
     first_heldout = min(i for i, c in enumerate(cols) if "heldout" in c)
     assert all(cols.index(c) < first_heldout for c in velocity_cols)
     assert cols.index("heldout.mean.psnr") < cols.index("heldout.mean.region.psnr")
+    assert t["stage1.chamfer_mm.mean_mm"][0] == pytest.approx(c1["mean_mm"])
+    assert not any("per_frame" in c for c in cols)
+    # Meshes of a fit that is not scored: an error naming the folder.
+    with pytest.raises(ValueError, match="meshes of 'no_x'"):
+        run_evaluate(
+            s["ingest"], s["masks"], s["fit"], tmp_path / "o2", gt_dir=s["gt"],
+            compare_meshes={"no_x": tmp_path / "mesh_stage1"},
+        )  # fmt: skip
     # Bad arguments: a malformed --ablation, a missing ablation fit, a reserved name.
     assert main(argv[:-2] + ["--ablation", "no_sdf"]) == 2
     assert "NAME=DIR" in capsys.readouterr().err

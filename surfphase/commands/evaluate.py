@@ -26,6 +26,7 @@ def _run(args: argparse.Namespace) -> int:
         fit_stage1_dir=args.fit_stage1,
         ablations=_named_dirs(args.ablation or [], "--ablation"),
         region_scale=args.region_scale,
+        compare_meshes=_named_dirs(args.compare_meshes or [], "--compare-meshes"),
     )
     parts = [f"evaluate {m['session']}:"]
     for label, v in (m.get("velocity") or {}).items():
@@ -130,6 +131,12 @@ def register(subparsers) -> None:
         action="append",
         metavar="NAME=DIR",
         help="an ablation's fit folder (e.g. no_sdf=results/s/ablations/no_sdf/fit); repeat",
+    )
+    p.add_argument(
+        "--compare-meshes",
+        action="append",
+        metavar="NAME=DIR",
+        help="meshes of stage 1 (stage1=DIR) or an ablation, for their Chamfer (with --gt); repeat",
     )
     p.add_argument(
         "--region-scale",

@@ -321,6 +321,7 @@ def run_evaluate(
     fit_stage1_dir: str | os.PathLike | None = None,
     ablations: Mapping[str, str | os.PathLike] | None = None,
     region_scale: float = regions.REGION_SCALE,
+    compare_meshes: Mapping[str, str | os.PathLike] | None = None,
 ) -> dict:
     """Evaluate one session (see the module docstring); returns the metrics dict.
 
@@ -341,6 +342,8 @@ def run_evaluate(
         ablations: ``{name: fit folder}`` of ablation fits (e.g. ``no_sdf``), scored
             into ``metrics["ablations"][name]``.
         region_scale: bubble region = projected spheres of ``region_scale · r_eq``.
+        compare_meshes: ``{name: meshes folder}`` of ``stage1`` or an ablation: with
+            ground truth, their Chamfer distance goes into that fit's entry.
     """
     from surfphase.device import resolve_device
 
@@ -349,6 +352,7 @@ def run_evaluate(
     name = session or data["session"]
     fit_cols = ["frame", "bubble", "x", "y", "z", "vx", "vy", "vz"]
     ablations = {str(k): Path(v) for k, v in (ablations or {}).items()}
+    compare_meshes = {str(k): Path(v) for k, v in (compare_meshes or {}).items()}
     for label, d in ablations.items():
         if not label or label in ("method", "baseline", "stage1"):
             raise ValueError(f"{d}: session {name}: ablation name {label!r} is not allowed")
@@ -360,6 +364,12 @@ def run_evaluate(
         others["stage1"] = (d, read_table(d / "bubbles.csv", fit_cols, f"session {name} stage 1"))
     for label, d in ablations.items():
         others[label] = (d, read_table(d / "bubbles.csv", fit_cols, f"session {name} {label}"))
+    for label, d in compare_meshes.items():
+        if label not in others:
+            raise ValueError(
+                f"{d}: session {name}: meshes of {label!r}, which is not a fit scored here "
+                "(stage1 needs the stage-1 fit, an ablation its fit)"
+            )
     base = bl.baseline_bubbles(data["cameras"], data["labels"], data["frames"], data["fps"])
     keep = (lambda df: df) if include_nucleation else (lambda df: df[df["bubble"] >= 1])
     metrics: dict = {
@@ -409,14 +419,12 @@ def run_evaluate(
         if held:
             metrics["settings"]["heldout"] = heldout_protocol(gt_dir)
         metrics.update(_fit_heldout(fit_dir, held, gt_dir, dev, region_truth, region_scale))
+        gt_cams = load_cameras(gt_dir / "cameras.json")
+        inputs = [gt_cams[c.name] for c in data["cameras"] if c.name in gt_cams]
+        seen_by = inputs if len(inputs) == len(data["cameras"]) else None
         if meshes_dir is not None:
-            gt_cams = load_cameras(gt_dir / "cameras.json")
-            inputs = [gt_cams[c.name] for c in data["cameras"] if c.name in gt_cams]
             metrics["chamfer_mm"] = chamfer_per_frame(
-                Path(meshes_dir),
-                gt_dir / "meshes",
-                data["frames"].tolist(),
-                cameras=inputs if len(inputs) == len(data["cameras"]) else None,
+                Path(meshes_dir), gt_dir / "meshes", data["frames"].tolist(), cameras=seen_by
             )
     cams = {c.name: (c, lab) for c, lab in zip(data["cameras"], data["labels"], strict=True)}
     ref_name = reference_camera or data["cameras"][0].name
@@ -446,6 +454,13 @@ def run_evaluate(
             m.insert(0, "source", label)
             tables.append(m)
             res.update(_fit_heldout(d, held, gt_dir, dev, region_truth, region_scale))
+            if label in compare_meshes:
+                res["chamfer_mm"] = chamfer_per_frame(
+                    compare_meshes[label],
+                    gt_dir / "meshes",
+                    data["frames"].tolist(),
+                    cameras=seen_by,
+                )
         res["reference2d"] = reference2d.compare_to_reference(keep(pred), ref, ref_cam)[0]
         if label == "stage1":
             metrics["stage1"] = res
@@ -541,7 +556,8 @@ def campaign_table(metrics: Sequence[dict]) -> pd.DataFrame:
         r"stage1\.heldout\.mean\.region\.", r"ablations\.[^.]+\.heldout\.mean\.region\.",
         r"heldout_whole\.mean\.", r"stage1\.heldout_whole\.mean\.",
         r"ablations\.[^.]+\.heldout_whole\.mean\.",
-        r"chamfer_mm\.", r"reference2d\.", r"stage1\.reference2d\.",
+        r"chamfer_mm\.", r"stage1\.chamfer_mm\.", r"ablations\.[^.]+\.chamfer_mm\.",
+        r"reference2d\.", r"stage1\.reference2d\.",
         r"ablations\.[^.]+\.reference2d\.", r"heldout\.", r"heldout_whole\.",
     ]  # fmt: skip
     cols: list[str] = []
@@ -558,4 +574,6 @@ def _means_only(fit_metrics: dict) -> dict:
     for key in ("heldout", "heldout_whole"):
         if isinstance(out.get(key), dict):
             out[key] = {k: v for k, v in out[key].items() if k == "mean"}
+    if isinstance(out.get("chamfer_mm"), dict):
+        out["chamfer_mm"] = {k: v for k, v in out["chamfer_mm"].items() if k != "per_frame"}
     return out

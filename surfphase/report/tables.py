@@ -29,6 +29,7 @@ COMPARISON_COLUMNS = {
     "bubble-region L1": ("region", "l1"),
     "held-out PSNR dB, whole image predicted": ("whole", "psnr"),
     "held-out SSIM, whole image predicted": ("whole", "ssim"),
+    "Chamfer mm": ("chamfer", "mean_mm"),
 }
 
 
@@ -53,6 +54,7 @@ def _sources(flat: Mapping) -> dict[str, dict[str, str]]:
             "heldout": "heldout.mean.",
             "region": "heldout.mean.region.",
             "whole": "heldout_whole.mean.",
+            "chamfer": "chamfer_mm.",
         },
         "stage 1 (no refinement)": {
             "velocity": "stage1.velocity.",
@@ -60,6 +62,7 @@ def _sources(flat: Mapping) -> dict[str, dict[str, str]]:
             "heldout": "stage1.heldout.mean.",
             "region": "stage1.heldout.mean.region.",
             "whole": "stage1.heldout_whole.mean.",
+            "chamfer": "stage1.chamfer_mm.",
         },
         "baseline (two-view triangulation)": {
             "velocity": "velocity.baseline.",
@@ -75,6 +78,7 @@ def _sources(flat: Mapping) -> dict[str, dict[str, str]]:
             "heldout": p + "heldout.mean.",
             "region": p + "heldout.mean.region.",
             "whole": p + "heldout_whole.mean.",
+            "chamfer": p + "chamfer_mm.",
         }
     return rows
 
@@ -128,6 +132,7 @@ SUMMARY_COLUMNS = {
     "heldout_whole.mean.psnr": "held-out PSNR dB, whole image predicted",
     "heldout_whole.mean.ssim": "held-out SSIM, whole image predicted",
     "chamfer_mm.mean_mm": "Chamfer mm",
+    "stage1.chamfer_mm.mean_mm": "Chamfer mm (stage 1)",
     "chamfer_mm.whole_truth_mean_mm": "Chamfer mm against the whole truth",
     "frames": "frames",
 }
@@ -147,6 +152,7 @@ def summary_table(table: pd.DataFrame) -> pd.DataFrame:
             ("velocity.relative_error", "velocity rel. error"),
             ("heldout.mean.psnr", "held-out PSNR dB"),
             ("heldout.mean.region.psnr", "bubble-region PSNR dB"),
+            ("chamfer_mm.mean_mm", "Chamfer mm"),
         ):
             c = f"ablations.{a}.{key}"
             if c in table.columns:

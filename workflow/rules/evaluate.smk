@@ -69,6 +69,33 @@ rule evaluate:
         " --device {params.device} --out $(dirname {output.metrics:q}) > {log:q} 2>&1"
 
 
+rule mesh_compare:
+    """Meshes of stage 1 or an ablation (single job), for their Chamfer distance."""
+    input:
+        fit=lambda wc: compare_fit(wc.session, wc.name),
+        ingest=f"{RESULTS}/{{session}}/ingest",
+    output:
+        directory(compare_mesh("{session}", "{name}")),
+    wildcard_constraints:
+        name="|".join(["stage1", *ABLATION_SETTINGS]),
+    params:
+        surfphase=SURFPHASE,
+        settings=json.dumps({k: v for k, v in config["mesh"].items() if k != "window"}),
+        device=config["device"],
+        code=code_version("mesh", "render", "fit", "commands/mesh"),
+    threads: config["threads"]
+    log:
+        "logs/mesh_compare/{session}.{name}.log",
+    benchmark:
+        "benchmarks/mesh_compare/{session}.{name}.tsv"
+    conda:
+        "../../envs/surfphase.yaml"
+    shell:
+        "{params.surfphase} mesh --fit $(dirname {input.fit:q}) --ingest {input.ingest:q}"
+        " --out {output:q} --device {params.device} --threads {threads}"
+        " --params-json {params.settings:q} > {log:q} 2>&1"
+
+
 rule campaign_table:
     """One table of every session's metrics (pandas)."""
     input:
