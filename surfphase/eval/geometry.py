@@ -216,15 +216,17 @@ def mesh_chamfer(
     """:func:`chamfer` of ``n`` area-uniform samples of each mesh (PLY files, metres).
 
     With ``cameras``, only the samples :func:`in_all_views` are compared (``points_pred``
-    and ``points_true`` say how many); if either set is then empty, every distance is
-    NaN (nothing to compare in that frame)."""
+    and ``points_true`` say how many; ``whole_truth_mean_mm`` is ``mean_mm`` of all the
+    samples, as without cameras); if either set is then empty, every distance is NaN
+    (nothing to compare in that frame)."""
     vp, fp = read_ply(pred_ply)
     vt, ft = read_ply(true_ply)
     a, b = sample_surface(vp, fp, n, seed), sample_surface(vt, ft, n, seed + 1)
     if cameras is None:
         return chamfer(a, b)
+    whole = chamfer(a, b)["mean_mm"]
     a, b = a[in_all_views(a, cameras)], b[in_all_views(b, cameras)]
-    counts = {"points_pred": int(len(a)), "points_true": int(len(b))}
+    counts = {"points_pred": int(len(a)), "points_true": int(len(b)), "whole_truth_mean_mm": whole}
     if len(a) == 0 or len(b) == 0:
         nan = float("nan")
         return {"mean_mm": nan, "mean_sq_mm2": nan, "a_to_b_mm": nan, "b_to_a_mm": nan, **counts}

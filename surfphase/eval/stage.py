@@ -178,6 +178,18 @@ def heldout_metrics(
         folder = views_dir / cam.name
         masks = regions.region_masks(cam, truth, frames, region_scale) if truth is not None else {}
         vals, region_vals = [], []
+        bg = None  # behind the bubbles, the same in every frame
+        backdrop = backdrops_dir / f"{cam.name}.png" if backdrops_dir is not None else None
+        if backdrop is not None and backdrop.exists():
+            ref = read_view(backdrop)
+            if ref.shape[:2] != (cam.height, cam.width):
+                raise ValueError(
+                    f"{backdrop}: image is {ref.shape[1]}×{ref.shape[0]}, camera "
+                    f"{cam.name} is {cam.width}×{cam.height}"
+                )
+            bg = ref.reshape(1, cam.height, cam.width, -1).astype(np.float32)
+        elif bg_images is not None and bg_images.shape[1:3] == (cam.height, cam.width):
+            bg = bg_images.mean(axis=0, keepdims=True)
         for t, f in enumerate(frames):
             path = folder / f"{f:06d}.png"
             if not path.exists():
@@ -188,18 +200,6 @@ def heldout_metrics(
                     f"{path}: image is {target.shape[1]}×{target.shape[0]}, camera {cam.name} "
                     f"is {cam.width}×{cam.height}"
                 )
-            bg = None
-            backdrop = backdrops_dir / f"{cam.name}.png" if backdrops_dir is not None else None
-            if backdrop is not None and backdrop.exists():
-                ref = read_view(backdrop)
-                if ref.shape[:2] != (cam.height, cam.width):
-                    raise ValueError(
-                        f"{backdrop}: image is {ref.shape[1]}×{ref.shape[0]}, camera "
-                        f"{cam.name} is {cam.width}×{cam.height}"
-                    )
-                bg = ref.reshape(1, cam.height, cam.width, -1).astype(np.float32)
-            elif bg_images is not None and bg_images.shape[1:3] == (cam.height, cam.width):
-                bg = bg_images.mean(axis=0, keepdims=True)
             rgb = render_surfels(surfels, t, [cam], device, bg)[0].astype(np.float64)
             if target.ndim == 2:
                 if rgb.shape[-1] != 1:
@@ -264,14 +264,12 @@ def chamfer_per_frame(
     is then the mean over frames without that restriction, for reference. Frames with
     nothing to compare in that volume are left out of the means (``frames`` counts the
     rest)."""
-    per, whole = {}, []
+    per = {}
     for f in frames:
         name = f"{int(f):06d}.ply"
         a, b = meshes_dir / name, gt_meshes_dir / name
         if a.exists() and b.exists():
             per[int(f)] = geometry.mesh_chamfer(a, b, n_points, seed, cameras)
-            if cameras is not None:
-                whole.append(geometry.mesh_chamfer(a, b, n_points, seed)["mean_mm"])
     if not per:
         return {}
     out = {
@@ -282,7 +280,9 @@ def chamfer_per_frame(
     }
     if cameras is not None:
         out["volume"] = "seen by every input camera (" + ", ".join(c.name for c in cameras) + ")"
-        out["whole_truth_mean_mm"] = float(np.mean(whole))
+        out["whole_truth_mean_mm"] = float(
+            np.mean([v["whole_truth_mean_mm"] for v in per.values()])
+        )
     out["per_frame"] = {str(k): v for k, v in per.items()}
     return out
 
@@ -412,14 +412,13 @@ def run_evaluate(
                 )
             m.insert(0, "source", label)
             tables.append(m)
+        gt_cams = load_cameras(gt_dir / "cameras.json")
         views_dir = gt_dir / "views"
         if views_dir.is_dir():
-            gt_cams = load_cameras(gt_dir / "cameras.json")
             held = [c for n, c in gt_cams.items() if (views_dir / n).is_dir()]
         if held:
             metrics["settings"]["heldout"] = heldout_protocol(gt_dir)
         metrics.update(_fit_heldout(fit_dir, held, gt_dir, dev, region_truth, region_scale))
-        gt_cams = load_cameras(gt_dir / "cameras.json")
         inputs = [gt_cams[c.name] for c in data["cameras"] if c.name in gt_cams]
         seen_by = inputs if len(inputs) == len(data["cameras"]) else None
         if meshes_dir is not None:

@@ -259,7 +259,7 @@ def render_views(
     rngs: list[np.random.Generator],
     out_sizes: list[tuple[int, int] | None],
     blur_sigmas: list[float],
-) -> list[tuple[np.ndarray, np.ndarray]]:
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Several views of one frame: per view a noisy image (H', W') in [0, 1], the
     labels (H, W) int32 of the bubble seen through each ray (-1 = none), and the
     noiseless image (H', W') the noise was drawn around.

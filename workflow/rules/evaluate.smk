@@ -80,7 +80,7 @@ rule mesh_compare:
         name="|".join(["stage1", *ABLATION_SETTINGS]),
     params:
         surfphase=SURFPHASE,
-        settings=json.dumps({k: v for k, v in config["mesh"].items() if k != "window"}),
+        settings=MESH_SETTINGS,
         device=config["device"],
         code=code_version("mesh", "render", "fit", "commands/mesh"),
     threads: config["threads"]
