@@ -303,3 +303,64 @@ def load_view(views_dir: str | os.PathLike, name: str) -> tuple[np.ndarray, floa
     except (OSError, ValueError, KeyError) as e:
         raise ValueError(f"{cam_path}: no readable fps ({e})") from e
     return stack.astype(np.float32) / 65535.0, fps
+
+
+def oracle_views(
+    gt_dir: str | os.PathLike,
+    views_dir: str | os.PathLike,
+    out_dir: str | os.PathLike,
+) -> dict:
+    """Write the true images of every orbit view as a refinement folder: what a perfect
+    prior would return, to measure how far stage 2 can go with this rig (a benchmark on
+    synthetic data; ground truth needed).
+
+    Reads ``views_dir/cameras.json`` (the orbit cameras, lab frame, and the session
+    frames), ``gt_dir/cameras.json`` (the true cameras, which for a synthetic campaign
+    include the same orbit views) and ``gt_dir/views_clean/<v>/<frame:06d>.png`` (the
+    noiseless views; ``views/`` where there are none). Writes ``out_dir/<v>.npy``, (T, H,
+    W) uint16 grey like ``refine``'s, and ``out_dir/oracle.json``.
+
+    Returns:
+        The ``oracle.json`` content: per view the offset (m) between its true camera
+        centre and the calibrated orbit camera's (calibration and scene-centre error, which
+        the oracle views carry), and the folder the frames came from.
+
+    Raises:
+        FileNotFoundError: an orbit view without a true camera or frame of that name.
+        ValueError: a true view whose image size differs from the orbit view's.
+    """
+    import cv2
+
+    from surfphase.cameras import load_cameras
+    from surfphase.io import atomic_path, atomic_write_json
+
+    gt_dir, views_dir, out_dir = Path(gt_dir), Path(views_dir), Path(out_dir)
+    meta = json.loads((views_dir / "cameras.json").read_text())
+    orbit = list(load_cameras(views_dir / "cameras.json").values())
+    truth = load_cameras(gt_dir / "cameras.json")
+    src = gt_dir / "views_clean" if (gt_dir / "views_clean").is_dir() else gt_dir / "views"
+    frames = [int(f) for f in meta["frame"]]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    info: dict = {"gt": str(gt_dir), "views": str(views_dir), "source": str(src), "offsets_m": {}}
+    for cam in orbit:
+        if cam.name not in truth:
+            raise FileNotFoundError(f"{gt_dir / 'cameras.json'}: no true camera {cam.name}")
+        stack = np.empty((len(frames), cam.height, cam.width), dtype=np.uint16)
+        for i, f in enumerate(frames):
+            path = src / cam.name / f"{f:06d}.png"
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if img is None:
+                raise FileNotFoundError(f"{path}: no true frame {f} of view {cam.name}")
+            if img.ndim == 3:
+                img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
+            if img.shape != stack.shape[1:]:
+                raise ValueError(
+                    f"{path}: {img.shape[1]}×{img.shape[0]} pixels, but orbit view "
+                    f"{cam.name} is {cam.width}×{cam.height}"
+                )
+            stack[i] = img if img.dtype == np.uint16 else img.astype(np.uint16) * 257
+        with atomic_path(out_dir / f"{cam.name}.npy") as tmp:
+            np.save(tmp, stack)
+        info["offsets_m"][cam.name] = float(np.linalg.norm(cam.center - truth[cam.name].center))
+    atomic_write_json(out_dir / "oracle.json", info)
+    return info

@@ -169,3 +169,44 @@ def test_render_views_errors_name_the_file(tmp_path, capsys):
                "--out", str(tmp_path / "views")])  # fmt: skip
     assert rc == 2 and "nofit" in capsys.readouterr().err
     assert not (tmp_path / "views").exists()
+
+
+def test_oracle_views_are_the_true_frames_of_the_orbit_cameras(tmp_path):
+    import cv2
+
+    from surfphase.views import oracle_views
+
+    cams = [
+        look_at(f"orbit{k:02d}", [0.03 * np.sin(a), 0.005, 0.03 * np.cos(a)], [0, 0, 0],
+                fx=40.0, width=12, height=10)
+        for k, a in ((1, 0.5), (2, 1.0))
+    ]  # fmt: skip
+    views, gt = tmp_path / "views", tmp_path / "gt"
+    views.mkdir()
+    save_cameras(views / "cameras.json", cams, fps=1000.0, frame=[3, 4])
+    # The true cameras: the same, one shifted by 20 µm (a calibration error).
+    shifted = look_at("orbit02", [0.03 * np.sin(1.0) + 2e-5, 0.005, 0.03 * np.cos(1.0)],
+                      [2e-5, 0, 0], fx=40.0, width=12, height=10)  # fmt: skip
+    save_cameras(gt / "cameras.json", [cams[0], shifted])
+    rng = np.random.default_rng(0)
+    truth = {}
+    for c in cams:
+        (gt / "views_clean" / c.name).mkdir(parents=True)
+        for f in (2, 3, 4):
+            img = rng.integers(0, 65536, size=(10, 12), dtype=np.uint16)
+            cv2.imwrite(str(gt / "views_clean" / c.name / f"{f:06d}.png"), img)
+            truth[c.name, f] = img
+    info = oracle_views(gt, views, tmp_path / "oracle")
+    for c in cams:
+        got = np.load(tmp_path / "oracle" / f"{c.name}.npy")
+        assert got.dtype == np.uint16
+        np.testing.assert_array_equal(got, np.stack([truth[c.name, 3], truth[c.name, 4]]))
+    assert info["offsets_m"]["orbit01"] == pytest.approx(0.0, abs=1e-12)
+    assert info["offsets_m"]["orbit02"] == pytest.approx(2e-5, rel=1e-6)
+    # A missing frame and a view of another size are named.
+    (gt / "views_clean" / "orbit02" / "000004.png").unlink()
+    with pytest.raises(FileNotFoundError, match="000004.png"):
+        oracle_views(gt, views, tmp_path / "o2")
+    cv2.imwrite(str(gt / "views_clean" / "orbit02" / "000004.png"), np.zeros((5, 5), np.uint16))
+    with pytest.raises(ValueError, match="orbit02 is 12×10"):
+        oracle_views(gt, views, tmp_path / "o3")

@@ -55,3 +55,33 @@ def register(subparsers) -> None:
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.set_defaults(func=_run)
+
+
+def _oracle(args: argparse.Namespace) -> int:
+    from surfphase.views import oracle_views
+
+    info = oracle_views(args.gt, args.views, args.out)
+    worst = max(info["offsets_m"].values(), default=0.0)
+    print(
+        f"bench oracle-views: {len(info['offsets_m'])} true orbit views from {info['source']} "
+        f"-> {args.out} (camera centres within {worst * 1e3:.3f} mm of the orbit cameras); "
+        f"run fit2 with --refine {args.out} to score stage 2 with a perfect prior"
+    )
+    return 0
+
+
+def register_bench(bench_subparsers) -> None:
+    from pathlib import Path
+
+    p = bench_subparsers.add_parser(
+        "oracle-views",
+        help="the true orbit views of a synthetic session as a refinement folder "
+        "(stage 2 with a perfect prior)",
+        description="Write OUT/<view>.npy (uint16 T×H×W, like refine's) from the ground "
+        "truth's noiseless images of the orbit cameras, for fit2 --refine OUT: the "
+        "stage-2 fit scored as if the prior returned the true views.",
+    )
+    p.add_argument("--gt", required=True, type=Path, help="the session's gt folder")
+    p.add_argument("--views", required=True, type=Path, help="render-views folder")
+    p.add_argument("--out", required=True, type=Path, help="folder to write")
+    p.set_defaults(func=_oracle)
