@@ -111,6 +111,7 @@ def visual_hull_surfels(
     spheres: dict[int, tuple[np.ndarray, float]] | None = None,
     grid: int = 48,
     pad: float = 1.5,
+    occlusion: bool = False,
 ) -> HullSurfels:
     """Surfel seeds on the surface of the visual hull of the masks.
 
@@ -123,6 +124,10 @@ def visual_hull_surfels(
         spheres: precomputed :func:`bubble_spheres`.
         grid: voxels along the longest side of the bounding box.
         pad: bounding spheres are enlarged by this factor before carving.
+        occlusion: with ``bubble``, a pixel of another bubble ``o`` does not carve a
+            voxel that ``o`` can hide there: one behind ``o``'s sphere centre (depth along
+            that camera's axis) and outside ``o``'s sphere. Without it a bubble partly
+            hidden behind another in one view loses the hidden part from its hull.
 
     Returns:
         :class:`HullSurfels` (possibly empty when nothing is carved).
@@ -153,6 +158,15 @@ def visual_hull_surfels(
         hit = np.zeros(pts.shape[0], dtype=bool)
         lv = lab[r[ok], c[ok]]
         hit[ok] = (lv == bubble) if bubble is not None else (lv >= 0)
+        if bubble is not None and occlusion:
+            for o, (co, ro) in spheres.items():
+                if o == bubble:
+                    continue
+                z_o = cam.world_to_camera(co[None])[0, 2]
+                behind = (z > z_o) & (np.linalg.norm(pts - co, axis=1) > ro)
+                on_o = np.zeros(pts.shape[0], dtype=bool)
+                on_o[ok] = lv == o
+                hit |= on_o & behind
         inside &= hit
     occ = inside.reshape(X.shape)
     surface = occ & ~ndimage.binary_erosion(occ, border_value=0)

@@ -72,6 +72,9 @@ DEFAULTS: dict = {
     "spawn_min_surfels": 30,  # a mask bubble with fewer bound surfels gets new ones
     "spawn_max_surfels": 400,  # at most this many surfels per newly appearing bubble
     "spawn_grid": 24,  # hull voxels per newly appearing bubble
+    # A new or merged bubble's hull is not carved by another bubble's pixels where that
+    # bubble can hide it (init.visual_hull_surfels, occlusion).
+    "hull_occlusion": True,
     # A bubble formed by a merge (the mask stage's events.csv) is seeded afresh from its
     # visual hull; see _reseed_merges.
     "reseed_merges": True,
@@ -576,7 +579,13 @@ def _spawn_bubbles(
             images = list(data.images(t))
         grid, most = sizes.get(b, (p["spawn_grid"], p["spawn_max_surfels"]))
         hull = init.visual_hull_surfels(
-            data.cameras, labels, images, bubble=b, spheres=spheres, grid=grid
+            data.cameras,
+            labels,
+            images,
+            bubble=b,
+            spheres=spheres,
+            grid=grid,
+            occlusion=bool(p["hull_occlusion"]),
         )
         n = hull.points.shape[0]
         if n == 0:
