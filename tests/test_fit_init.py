@@ -60,7 +60,7 @@ def test_scene_hides_part_of_b_in_one_view_only(scene):
     assert hidden[0] > 0.5 and hidden[1] == 0.0  # 55 % of B is hidden in "front"
 
 
-def test_occlusion_keeps_the_hidden_part_and_stays_out_of_the_occluder(scene):
+def test_occlusion_keeps_the_hidden_part(scene):
     cams, labels, images = scene
     lowest = B[0][1] - B[1]  # the true bottom of B, y
     plain = visual_hull_surfels(cams, labels, images, bubble=2, grid=48)

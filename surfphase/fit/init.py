@@ -148,6 +148,13 @@ def visual_hull_surfels(
     X, Y, Z = np.meshgrid(*axes, indexing="ij")
     pts = np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
     inside = np.ones(pts.shape[0], dtype=bool)
+    # Other bubbles that may hide this one: (id, centre, voxels outside their sphere).
+    occluders = (
+        [(o, co, np.linalg.norm(pts - co, axis=1) > ro) for o, (co, ro) in spheres.items()
+         if o != bubble]
+        if bubble is not None and occlusion
+        else []
+    )  # fmt: skip
     for cam, lab in zip(cameras, labels, strict=True):
         H, W = lab.shape
         z = cam.world_to_camera(pts)[:, 2]
@@ -158,15 +165,10 @@ def visual_hull_surfels(
         hit = np.zeros(pts.shape[0], dtype=bool)
         lv = lab[r[ok], c[ok]]
         hit[ok] = (lv == bubble) if bubble is not None else (lv >= 0)
-        if bubble is not None and occlusion:
-            for o, (co, ro) in spheres.items():
-                if o == bubble:
-                    continue
-                z_o = cam.world_to_camera(co[None])[0, 2]
-                behind = (z > z_o) & (np.linalg.norm(pts - co, axis=1) > ro)
-                on_o = np.zeros(pts.shape[0], dtype=bool)
-                on_o[ok] = lv == o
-                hit |= on_o & behind
+        for o, co, outside in occluders:
+            on_o = np.zeros(pts.shape[0], dtype=bool)
+            on_o[ok] = lv == o
+            hit |= on_o & outside & (z > cam.world_to_camera(co[None])[0, 2])
         inside &= hit
     occ = inside.reshape(X.shape)
     surface = occ & ~ndimage.binary_erosion(occ, border_value=0)
