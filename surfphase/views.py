@@ -146,6 +146,7 @@ def render_frame(
     Returns:
         grey (C, H, W) float32 in [0, 1] (colour channels averaged) and alpha (C, H, W).
     """
+    from surfphase.fit.outputs import frame_colors
     from surfphase.render import camera_tensors, rasterize_surfels
 
     dev = torch.device(device)
@@ -162,7 +163,7 @@ def render_frame(
     with torch.no_grad():
         rgb, alpha, _ = rasterize_surfels(
             f("means"), f("quats"), torch.exp(f("log_scales")), f("opacity"),
-            f("colors").clamp(0, 1), viewmats, Ks, W, H,
+            frame_colors(surfels, t, viewmats, dev).clamp(0, 1), viewmats, Ks, W, H,
         )  # fmt: skip
     grey = rgb.mean(-1).cpu().numpy()
     a = alpha[..., 0].cpu().numpy()

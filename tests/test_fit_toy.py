@@ -18,10 +18,11 @@ LIGHT = np.array([0.3, 1.0, 0.5]) / np.linalg.norm([0.3, 1.0, 0.5])
 BACKGROUND = 0.8
 
 
-def toy_cameras(size: int = 48):
+def toy_cameras(size: int = 48, azimuths=(0.0, 35.0)):
+    """Cameras ``cam0``, ``cam1``, … at ``azimuths`` (degrees about +y), 6 cm away."""
     target = np.array([0.0, 0.003, 0.0])
     cams = []
-    for k, az in enumerate((0.0, 35.0)):
+    for k, az in enumerate(azimuths):
         a = math.radians(az)
         eye = target + np.array([0.06 * math.sin(a), 0.002, 0.06 * math.cos(a)])
         cams.append(
@@ -38,8 +39,17 @@ def toy_spheres(frame: int, fps: float, velocity=(0.02, 0.25, 0.0)):
     return [(0, np.array([-0.0004, 0.0009, 0.0]), 0.001), (1, c1, 0.0011)]
 
 
-def raycast(cam, spheres, ss: int = 3):
-    """(H, W) image in [0, 1] and (H, W) int32 labels of lit spheres seen by ``cam``."""
+def _smoothstep(a: float, b: float, x: np.ndarray) -> np.ndarray:
+    s = np.clip((x - a) / (b - a), 0.0, 1.0)
+    return s * s * (3 - 2 * s)
+
+
+def raycast(cam, spheres, ss: int = 3, look: str = "lit"):
+    """(H, W) image in [0, 1] and (H, W) int32 labels of spheres seen by ``cam``.
+
+    ``look``: ``"lit"`` — spheres lit from :data:`LIGHT` (the same shade from every
+    camera); ``"backlit"`` — a shadowgraph: dark where the ray meets the sphere
+    obliquely, a bright core where the sphere faces the camera (view-dependent)."""
     H, W = cam.height, cam.width
     offs = (np.arange(ss) + 0.5) / ss - 0.5
     img = np.zeros((H, W))
@@ -61,7 +71,11 @@ def raycast(cam, spheres, ss: int = 3):
             p = o + tt[closer, None] * d[closer]
             n = (p - c) / r
             best[closer] = tt[closer]
-            shade[closer] = 0.15 + 0.55 * np.clip(n @ LIGHT, 0, None)
+            if look == "backlit":
+                cos = np.abs(np.einsum("nk,nk->n", n, d[closer]))
+                shade[closer] = BACKGROUND * (0.09 + 0.64 * _smoothstep(0.8, 0.95, cos))
+            else:
+                shade[closer] = 0.15 + 0.55 * np.clip(n @ LIGHT, 0, None)
             lab[closer] = bid
         if k < ss * ss:
             img += shade.reshape(H, W) / (ss * ss)
@@ -70,16 +84,24 @@ def raycast(cam, spheres, ss: int = 3):
     return img, labels
 
 
-def make_toy_session(root: Path, frames: int = 4, size: int = 48, fps: float = 1000.0):
-    """Write ``root/ingest`` and ``root/masks`` of a toy session; return (ingest, masks)."""
-    cams = toy_cameras(size)
+def make_toy_session(
+    root: Path,
+    frames: int = 4,
+    size: int = 48,
+    fps: float = 1000.0,
+    look: str = "lit",
+    azimuths=(0.0, 35.0),
+):
+    """Write ``root/ingest`` and ``root/masks`` of a toy session; return (ingest, masks).
+    ``look``: see :func:`raycast`; ``azimuths``: see :func:`toy_cameras`."""
+    cams = toy_cameras(size, azimuths)
     ingest, masks = root / "ingest", root / "masks"
     ingest.mkdir(parents=True, exist_ok=True)
     masks.mkdir(parents=True, exist_ok=True)
     for cam in cams:
         imgs, labs = [], []
         for f in range(frames):
-            im, lab = raycast(cam, toy_spheres(f, fps))
+            im, lab = raycast(cam, toy_spheres(f, fps), look=look)
             imgs.append(im.astype(np.float32))
             labs.append(lab)
         np.save(ingest / f"{cam.name}.npy", np.stack(imgs))

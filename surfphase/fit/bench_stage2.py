@@ -63,7 +63,8 @@ def run_benchmark(
     times: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(int(repeats)):
         for name, v in variants.items():
-            model = initial_model_from_stage1(surfels, bool(p["use_sdf"]))
+            knots = int(p["shade_knots"]) if p["shading"] else None
+            model = initial_model_from_stage1(surfels, bool(p["use_sdf"]), knots)
             gen = torch.Generator().manual_seed(0)
             t0 = time.perf_counter()
             if not v:

@@ -17,7 +17,7 @@ from collections.abc import Callable
 
 import torch
 
-from surfphase.fit.model import SurfelModel, quat_to_rotmat
+from surfphase.fit.model import SurfelModel, per_surfel, quat_to_rotmat
 
 Edit = Callable[[str, torch.Tensor, bool], torch.Tensor]
 
@@ -26,10 +26,11 @@ def _edit_params_and_state(
     model: SurfelModel, optimizer: torch.optim.Optimizer | None, edit: Edit
 ) -> None:
     """Apply ``edit(name, tensor, is_state)`` to every per-surfel parameter and its Adam
-    moments (``is_state=True``; new rows must get zeros). Scalars (γ) are left alone."""
+    moments (``is_state=True``; new rows must get zeros). Global parameters (γ, the shading
+    curve) are left alone."""
     old = dict(model.params)
     model.replace_params(
-        {k: (v.detach() if v.dim() == 0 else edit(k, v.detach(), False)) for k, v in old.items()}
+        {k: (edit(k, v.detach(), False) if per_surfel(k) else v.detach()) for k, v in old.items()}
     )
     if optimizer is None:
         return
@@ -40,7 +41,7 @@ def _edit_params_and_state(
         group["params"] = [p_new]
         if st is None:
             continue
-        if p_new.dim() > 0:
+        if per_surfel(name):
             st = {
                 k: (edit(name, v, True) if torch.is_tensor(v) and v.dim() > 0 else v)
                 for k, v in st.items()
@@ -177,13 +178,13 @@ class Densify2DGS:
         n_before = model.n
         p = model.state()
         # Clone: an identical copy (the optimiser will pull the two apart).
-        new = {k: v[clone] for k, v in p.items() if v.dim() > 0}
+        new = {k: v[clone] for k, v in p.items() if per_surfel(k)}
         # Split: two children drawn from the parent's disk, scales / 1.6; parent removed.
         if split.any():
             rot = quat_to_rotmat(p["quats"][split])  # (M, 3, 3)
             s = torch.exp(p["log_scales"][split])  # (M, 2)
             kids = {
-                k: v[split].repeat(2, *([1] * (v.dim() - 1))) for k, v in p.items() if v.dim() > 0
+                k: v[split].repeat(2, *([1] * (v.dim() - 1))) for k, v in p.items() if per_surfel(k)
             }
             z = torch.randn((2 * s.shape[0], 2), generator=generator, dtype=s.dtype).to(s.device)
             off2 = z * s.repeat(2, 1)

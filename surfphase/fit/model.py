@@ -15,6 +15,10 @@ opacity ``o(γ f)`` is the same in either unit system.
 
 With ``use_sdf=False`` (the "no SDF" ablation) the opacity is a free parameter,
 ``o = sigmoid(opacity_logit)``, as in plain 2D Gaussian splatting.
+
+Optionally the model carries a shading curve ``shade`` (K, D): one function of the
+facing angle for all surfels, added to their colours in each view
+(:mod:`surfphase.render.shading`).
 """
 
 from __future__ import annotations
@@ -71,6 +75,14 @@ def normal_to_quat(normals: torch.Tensor) -> torch.Tensor:
 #: Names of the optimised tensors, in a fixed order (optimizer groups, checkpoints).
 PARAM_NAMES_SDF = ("means", "log_scales", "quats", "colors", "sdf", "log_gamma")
 PARAM_NAMES_FREE = ("means", "log_scales", "quats", "colors", "opacity_logit")
+#: Parameters that belong to the whole model, not to one surfel (never indexed per
+#: surfel by densification, pruning or appending).
+GLOBAL_PARAMS = frozenset({"log_gamma", "shade"})
+
+
+def per_surfel(name: str) -> bool:
+    """Whether parameter ``name`` has one row per surfel."""
+    return name not in GLOBAL_PARAMS
 
 
 class SurfelModel:
@@ -84,6 +96,9 @@ class SurfelModel:
         sdf: (N,) SDF values in units of ``extent`` (``use_sdf`` only).
         log_gamma: () log of ``γ`` in 1/``extent`` units (``use_sdf`` only).
         opacity_logit: (N,) free opacities before the sigmoid (``use_sdf=False`` only).
+        shade: (K, D) shading curve added to the colours per view, stored as
+            :func:`surfphase.render.shading.monotone_raw` of its knot values (optional;
+            absent = view-independent colour).
         extent: scene extent ``L`` in metres (a constant, not optimised).
     """
 
@@ -91,6 +106,8 @@ class SurfelModel:
         self.use_sdf = bool(use_sdf)
         self.extent = float(extent)
         names = PARAM_NAMES_SDF if self.use_sdf else PARAM_NAMES_FREE
+        if "shade" in params:
+            names = (*names, "shade")
         missing = [k for k in names if k not in params]
         if missing:
             raise ValueError(f"SurfelModel: missing parameters {missing}")
@@ -168,6 +185,23 @@ class SurfelModel:
             return torch.tensor(float("nan"))
         return torch.exp(self.params["log_gamma"])
 
+    @property
+    def shade(self) -> torch.Tensor | None:
+        """(K, D) knot values of the shading curve (never decreasing with the facing
+        cosine), or None (view-independent colour). The parameter ``shade`` holds them
+        through :func:`surfphase.render.shading.monotone_raw`."""
+        from surfphase.render.shading import monotone_knots
+
+        raw = self.params.get("shade")
+        return None if raw is None else monotone_knots(raw)
+
+    def view_colors(self, viewmats: torch.Tensor) -> torch.Tensor:
+        """(C, N, D) colours seen by C cameras (``viewmats`` (C, 4, 4) world-to-camera);
+        without a shading curve every camera sees ``colors``."""
+        from surfphase.render.shading import view_colors
+
+        return view_colors(self.colors, self.means, self.quats, self.shade, viewmats)
+
     def opacities(self) -> torch.Tensor:
         """(N,) opacities: from the SDF, or the free parameter in the ablation."""
         if self.use_sdf:
@@ -197,7 +231,7 @@ class SurfelModel:
         """Concatenate ``other``'s surfels after this model's (global γ kept)."""
         new = {}
         for k, v in self.params.items():
-            if k == "log_gamma":
+            if not per_surfel(k):
                 new[k] = v.detach()
             else:
                 new[k] = torch.cat([v.detach(), other.params[k].detach().to(v)], dim=0)

@@ -22,6 +22,8 @@ gamma          (F,) f4       SDF sharpness γ, 1/metres (NaN without SDF)
 background     (D,) f4       background colour for novel views (median of the images)
 bg_images      (C,H,W,D) f4  per-input-view background images the fit rendered over
 extent         () f8         scene extent L, metres
+shade          (F, K, D) f4  shading curve added to the colours per view (only with
+                             ``fit: shading``; :mod:`surfphase.render.shading`)
 =============  ============  ========================================================
 
 ``OUTDIR/bubbles.csv`` — ``frame, time_s, bubble, x, y, z, vx, vy, vz, n_surfels``:
@@ -84,7 +86,24 @@ def stack_records(records: Sequence[dict], extent: float) -> dict[str, np.ndarra
         if "sdf" in r:
             out["sdf"][t, n] = r["sdf"] * extent
             out["gamma"][t] = r["gamma"] / extent
+    if "shade" in records[0]:
+        out["shade"] = np.stack([np.asarray(r["shade"], np.float32) for r in records])
     return out
+
+
+def frame_colors(
+    surfels: dict[str, np.ndarray], frame: int, viewmats: torch.Tensor, device
+) -> torch.Tensor:
+    """Colours of frame position ``frame``'s live surfels as seen by C cameras
+    (``viewmats`` (C, 4, 4)): (N, D), or (C, N, D) when the fit has a shading curve."""
+    from surfphase.render.shading import view_colors
+
+    a = np.asarray(surfels["alive"][frame], bool)
+    f = lambda k: torch.as_tensor(np.asarray(surfels[k][frame])[a], device=device)  # noqa: E731
+    if "shade" not in surfels:
+        return f("colors")
+    knots = torch.as_tensor(np.asarray(surfels["shade"][frame]), device=device)
+    return view_colors(f("colors"), f("means"), f("quats"), knots, viewmats.to(knots))
 
 
 def record_ids(record: dict) -> np.ndarray:
@@ -217,7 +236,7 @@ def render_surfels(
             f("quats"),
             torch.exp(f("log_scales")),
             f("opacity"),
-            f("colors"),
+            frame_colors(surfels, frame, viewmats, dev),
             viewmats,
             Ks,
             W,

@@ -87,7 +87,9 @@ def register_bubbles(
     with torch.no_grad():
         base = model.means.detach().clone()
         quats, scales = model.quats.detach(), model.scales.detach()
-        opac, colors = model.opacities().detach(), model.colors.detach()
+        opac = model.opacities().detach()
+        shaded = model.shade is not None
+        colors = (model.view_colors(viewmats) if shaded else model.colors).detach()
     for it in range(steps):
         for g in opt.param_groups:
             g["lr"] = lr * lr_decay ** (it / max(steps - 1, 1))
@@ -103,7 +105,15 @@ def register_bubbles(
                 continue
             sel = row_t == ids.index(b)
             _, a_b, _ = rasterize_surfels(
-                means[sel], quats[sel], scales[sel], opac[sel], colors[sel], viewmats, Ks, W, H
+                means[sel],
+                quats[sel],
+                scales[sel],
+                opac[sel],
+                colors[..., sel, :],
+                viewmats,
+                Ks,
+                W,
+                H,
             )
             loss = loss + w_silhouette * (a_b[..., 0] - mask).abs().flatten(1).mean(dim=1).sum()
         opt.zero_grad(set_to_none=True)

@@ -50,8 +50,9 @@ from surfphase.cameras import Camera, load_cameras
 from surfphase.device import resolve_device
 from surfphase.fit import binding, init, losses, register
 from surfphase.fit.densify import Densify2DGS, NoDensify, append_surfels
-from surfphase.fit.model import HALF_OPACITY_GF, SurfelModel
+from surfphase.fit.model import HALF_OPACITY_GF, SurfelModel, per_surfel
 from surfphase.io import atomic_path
+from surfphase.render.shading import monotone_raw
 
 #: Every hyperparameter of the fit, with its default (mirrored in config.yaml ``fit:``).
 #: Units are given per entry; ``L`` is the scene extent in metres.
@@ -104,6 +105,7 @@ DEFAULTS: dict = {
     "w_normal": 0.05,
     "w_gamma": 0.01,  # on L_γ/γ_m (relative hinge, dimensionless)
     "w_proj": 0.1,  # on L_proj (units of L)
+    "w_mask": 0.0,  # on mean |α − masks| over the input views (0: off)
     "geo_from": 0.3,  # fraction of frame 0's steps before geometry losses start
     # L_proj ignores (point, view) pairs whose depth error exceeds proj_threshold·L
     # metres: the paper's 0.1 in normalised scene units, here units of L.
@@ -138,6 +140,18 @@ DEFAULTS: dict = {
     # largest equivalent radius over the views; nearest bubble ≥ 1 by distance / r; the
     # nucleation region is left free). None = off.
     "depth_bound": None,
+    # -- appearance -------------------------------------------------------------------
+    # A backlit bubble is bright where the interface faces the camera and dark where it
+    # is oblique, so one interface point looks different from each camera. True: every
+    # view's surfel colours get one learned curve of |normal · view direction| added
+    # (surfphase.render.shading; shade_knots values per channel, starting at zero).
+    "shading": False,
+    "shade_knots": 11,
+    "lr_shade": 0.01,
+    # With shading, False: no per-surfel colour at all (every surfel's is 0 and the curve,
+    # started at the mean colour inside the masks, carries the whole bubble's look), so
+    # the look can only be explained by where the surfels face.
+    "surfel_colors": True,
     # -- outputs ----------------------------------------------------------------------
     "background": "images",  # "images": per-view temporal median of background pixels;
     # "constant": one colour, the median of those; or a number in [0, 1]
@@ -153,6 +167,8 @@ def merge_params(params: Mapping | None) -> dict:
         if k not in DEFAULTS:
             raise ValueError(f"fit: unknown parameter {k!r}")
         out[k] = v
+    if not out["surfel_colors"] and not out["shading"]:
+        raise ValueError("fit: surfel_colors false needs shading true (nothing else colours)")
     return out
 
 
@@ -279,10 +295,11 @@ def make_optimizer(model: SurfelModel, p: dict) -> torch.optim.Adam:
         "means": p["lr_means"] * model.extent,
         "log_scales": p["lr_log_scales"],
         "quats": p["lr_quats"],
-        "colors": p["lr_colors"],
+        "colors": p["lr_colors"] if p["surfel_colors"] or model.shade is None else 0.0,
         "sdf": p["lr_sdf"],
         "log_gamma": p["lr_log_gamma"],
         "opacity_logit": p["lr_opacity"],
+        "shade": p["lr_shade"],
     }
     groups = [{"params": [v], "lr": lrs[k], "name": k} for k, v in model.params.items()]
     return torch.optim.Adam(groups, lr=0.0, eps=p["adam_eps"])
@@ -297,7 +314,7 @@ def _render(model: SurfelModel, viewmats, Ks, width, height, backgrounds: torch.
         model.quats,
         model.scales,
         model.opacities(),
-        model.colors,
+        model.view_colors(viewmats) if model.shade is not None else model.colors,
         viewmats,
         Ks,
         width,
@@ -385,6 +402,7 @@ def fit_frame(
     view_schedule=None,
     geo_views: int | None = None,
     bounds: DepthBounds | None = None,
+    foreground: torch.Tensor | None = None,
 ) -> list[dict]:
     """Optimise ``model`` on one frame's (C, H, W, D) ``observed`` images. Returns the
     logged curve rows.
@@ -394,7 +412,10 @@ def fit_frame(
     input views) and their photometric weights ((K,)); the geometry losses and the
     logged L1/D-SSIM/PSNR then use those first ``geo_views`` views only. Without a
     schedule every view is rendered with weight 1 (stage 1). ``bounds`` (see
-    :func:`depth_bounds`) limits the surfels' depth extent after every step.
+    :func:`depth_bounds`) limits the surfels' depth extent after every step. With
+    ``foreground`` ((C_in, H, W) floats, 1 inside any bubble's mask of an input view)
+    and ``w_mask`` > 0, ``w_mask · mean|α − foreground|`` over the input views is added:
+    a bubble is opaque inside its mask.
     """
     C, H, W, D = observed.shape
     opt = make_optimizer(model, p)
@@ -425,6 +446,8 @@ def fit_frame(
             geo = {k: meta[k][:ng] for k in ("normals_camera", "normals_from_depth")}
             geo["depth_expected"] = meta["depth_expected"][:ng]
         loss = p["lambda_app"] * app
+        if foreground is not None and p["w_mask"] > 0:
+            loss = loss + p["w_mask"] * (alpha[..., 0] - foreground).abs().mean()
         geo_on = it >= geo_from
         ln = lg = lp = torch.zeros(())
         if geo_on:
@@ -543,7 +566,7 @@ def _initial_model(data: SessionData, p: dict, gen: torch.Generator, dtype) -> S
     else:
         idx = np.arange(n)
     t = lambda a: torch.as_tensor(a[idx], dtype=dtype)  # noqa: E731
-    return SurfelModel.from_points(
+    model = SurfelModel.from_points(
         t(hull.points),
         t(hull.normals),
         t(hull.colors),
@@ -552,6 +575,16 @@ def _initial_model(data: SessionData, p: dict, gen: torch.Generator, dtype) -> S
         init_sdf=p["init_sdf"],
         use_sdf=p["use_sdf"],
     )
+    if p["shading"]:
+        params = model.state()
+        D = model.colors.shape[1]
+        knots = torch.zeros((int(p["shade_knots"]), D), dtype=dtype)
+        if not p["surfel_colors"]:
+            knots += params["colors"].mean(0)
+            params["colors"] = torch.zeros_like(params["colors"])
+        params["shade"] = monotone_raw(knots)
+        model = SurfelModel(params, extent=extent, use_sdf=p["use_sdf"])
+    return model
 
 
 def _spawn_bubbles(
@@ -600,7 +633,7 @@ def _spawn_bubbles(
         new = SurfelModel.from_points(
             torch.as_tensor(hull.points[idx], dtype=dt),
             torch.as_tensor(hull.normals[idx], dtype=dt),
-            torch.as_tensor(hull.colors[idx], dtype=dt),
+            torch.as_tensor(hull.colors[idx], dtype=dt) * (1.0 if p["surfel_colors"] else 0.0),
             hull.spacing * p["init_scale"],
             extent=model.extent,
             init_sdf=p["init_sdf"],
@@ -612,14 +645,16 @@ def _spawn_bubbles(
             vals["sdf"] = torch.full_like(
                 vals["sdf"], HALF_OPACITY_GF / float(model.gamma.detach())
             )
-        append_surfels(model, None, {k: v for k, v in vals.items() if v.dim() > 0})
+        append_surfels(model, None, {k: v for k, v in vals.items() if per_surfel(k)})
         added.append(b)
     return added
 
 
 def _record(model: SurfelModel, bubble: np.ndarray) -> dict:
     st = model.state()
-    rec = {k: v.cpu().numpy().astype(np.float32) for k, v in st.items() if v.dim() > 0}
+    rec = {k: v.cpu().numpy().astype(np.float32) for k, v in st.items() if per_surfel(k)}
+    if model.shade is not None:
+        rec["shade"] = model.shade.detach().cpu().numpy().astype(np.float32)
     rec["opacity"] = model.opacities().detach().cpu().numpy().astype(np.float32)
     rec["gamma"] = float(model.gamma.detach())
     rec["bubble"] = bubble.astype(np.int32)
@@ -893,10 +928,11 @@ def run_fit(
             strategy, geo_from = NoDensify(), 0
         t_opt = time.perf_counter()
         bounds = depth_bounds(data.cameras, labels, p["depth_bound"])
+        fg = torch.as_tensor(np.stack(labels) >= 0, dtype=dtype, device=dev)
         if extra_views is None:
             rows = fit_frame(
                 model, observed, viewmats, Ks, bg_t, p, iters, strategy, t, gen,
-                geo_from=geo_from, bounds=bounds,
+                geo_from=geo_from, bounds=bounds, foreground=fg,
             )  # fmt: skip
         else:
             nc = len(data.cameras)
@@ -904,7 +940,7 @@ def run_fit(
             rows = fit_frame(
                 model, obs_all, fit_vm, fit_Ks, fit_bg, p, iters, strategy, t, gen,
                 geo_from=geo_from, view_schedule=extra_views.schedule(t, nc), geo_views=nc,
-                bounds=bounds,
+                bounds=bounds, foreground=fg,
             )  # fmt: skip
         t_done = time.perf_counter()
         with torch.no_grad():

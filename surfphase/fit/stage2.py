@@ -48,6 +48,7 @@ from surfphase.fit.outputs import load_surfels
 from surfphase.fit.stage import DEFAULTS as FIT_DEFAULTS
 from surfphase.fit.stage import merge_params, run_fit
 from surfphase.io import atomic_write_json
+from surfphase.render.shading import monotone_raw
 
 #: Stage-2 settings (config ``fit2:``), with their defaults. Keys of the stage-1 fit
 #: (:data:`surfphase.fit.stage.DEFAULTS`) may be given in ``fit2:`` too; they override
@@ -289,11 +290,15 @@ def load_extra_views(
     )
 
 
-def initial_model_from_stage1(surfels: Mapping[str, np.ndarray], use_sdf: bool) -> SurfelModel:
+def initial_model_from_stage1(
+    surfels: Mapping[str, np.ndarray], use_sdf: bool, shade_knots: int | None = None
+) -> SurfelModel:
     """The surfels of frame 0 of a stage-1 ``surfels.npz`` as a :class:`SurfelModel`.
 
     The file stores ``f`` in metres and ``γ`` per metre; the model works in units of the
     scene extent ``L`` (``f/L``, ``γ·L``). Without SDF the free opacity becomes its logit.
+    A stage-1 shading curve (``shade``) is carried over; without one, ``shade_knots``
+    (an int) starts a curve of zeros, None none.
     """
     a = np.asarray(surfels["alive"][0], dtype=bool)
     L = float(surfels["extent"])
@@ -309,6 +314,11 @@ def initial_model_from_stage1(surfels: Mapping[str, np.ndarray], use_sdf: bool) 
     else:
         o = np.clip(np.asarray(surfels["opacity"][0])[a], 1e-6, 1 - 1e-6)
         params["opacity_logit"] = torch.as_tensor(np.log(o / (1 - o)), dtype=torch.float32)
+    if "shade" in surfels:
+        knots = torch.as_tensor(np.asarray(surfels["shade"][0]), dtype=torch.float32)
+        params["shade"] = monotone_raw(knots)
+    elif shade_knots is not None:
+        params["shade"] = monotone_raw(torch.zeros((int(shade_knots), params["colors"].shape[1])))
     return SurfelModel(params, extent=L, use_sdf=use_sdf)
 
 
@@ -347,7 +357,8 @@ def run_fit_stage2(
     stage1 = Path(stage1_dir) / "surfels.npz"
     surfels = load_surfels(stage1)
     data = SessionData(ingest_dir, masks_dir)
-    model = initial_model_from_stage1(surfels, bool(fit["use_sdf"]))
+    knots = int(fit["shade_knots"]) if fit["shading"] else None
+    model = initial_model_from_stage1(surfels, bool(fit["use_sdf"]), knots)
     D = int(np.asarray(surfels["colors"]).shape[-1])
     extra = load_extra_views(
         views_dir, refine_dir, s2, (data.height, data.width), D, seed=int(fit["seed"])

@@ -63,7 +63,8 @@ def rasterize_surfels(
         quats: (N, 4) rotations ``(w, x, y, z)``, need not be normalised.
         scales: (N, 2) tangent-plane standard deviations, metres (not log).
         opacities: (N,) in [0, 1].
-        colors: (N, D) any number of channels.
+        colors: (N, D) any number of channels, the same in every camera, or (C, N, D)
+            per camera (view-dependent colour, :mod:`surfphase.render.shading`).
         viewmats: (C, 4, 4) world-to-camera ``[R t; 0 1]``.
         Ks: (C, 3, 3) OpenCV intrinsics, pixels (images undistorted).
         width, height: image size, pixels.
@@ -140,7 +141,7 @@ def rasterize_surfels(
         out["depth_median"],
         viewmats,
         Ks,
-        colors.shape[1],
+        colors.shape[-1],
         backgrounds,
         out["means2d"],
         out["radii"],
@@ -249,7 +250,11 @@ def _check_inputs(means, quats, scales, opacities, colors, viewmats, Ks, width, 
         (quats.shape == (N, 4), "quats must be (N, 4)"),
         (scales.shape == (N, 2), "scales must be (N, 2)"),
         (opacities.shape == (N,), "opacities must be (N,)"),
-        (colors.dim() == 2 and colors.shape[0] == N, "colors must be (N, D)"),
+        (
+            (colors.dim() == 2 and colors.shape[0] == N)
+            or (colors.dim() == 3 and colors.shape[:2] == (viewmats.shape[0], N)),
+            "colors must be (N, D) or (C, N, D)",
+        ),
         (viewmats.dim() == 3 and viewmats.shape[1:] == (4, 4), "viewmats must be (C, 4, 4)"),
         (Ks.dim() == 3 and Ks.shape[1:] == (3, 3), "Ks must be (C, 3, 3)"),
         (Ks.shape[0] == viewmats.shape[0], "Ks and viewmats need the same C"),

@@ -49,7 +49,9 @@ def rasterize_surfels_reference(
     ``depth_median``, ``distortion`` (C, H, W, 1), ``normals_camera``,
     ``normals_world``, ``normals_from_depth`` (C, H, W, 3).
     """
-    C, N, D = viewmats.shape[0], means.shape[0], colors.shape[1]
+    C, N, D = viewmats.shape[0], means.shape[0], colors.shape[-1]
+    if colors.dim() == 2:
+        colors = colors[None].expand(C, N, D)
     dt, dev = means.dtype, means.device
     H, W = height, width
     out = {
@@ -117,7 +119,7 @@ def rasterize_surfels_reference(
                 n_cam = -n_cam
             median_now = ok & (T > 0.5)
             o = out
-            o["colors"][c] += w[..., None] * colors[i]
+            o["colors"][c] += w[..., None] * colors[c, i]
             o["alphas"][c, ..., 0] += w
             o["depth_accum"][c, ..., 0] += w * depth
             o["distortion"][c, ..., 0] += dist

@@ -54,7 +54,7 @@ def rasterize_sparse(
     ``visible`` (C, N).
     """
     C, N = viewmats.shape[0], means.shape[0]
-    D = colors.shape[1]
+    D = colors.shape[-1]
     proj = project_surfels(means, quats, scales, viewmats, Ks)
     z = proj["depth"]
     box, half = bounding_boxes(proj["M"], proj["means2d"].detach(), low_pass, width, height)
@@ -80,7 +80,7 @@ def rasterize_sparse(
             z[..., None],
             opacities[None, :, None].expand(C, N, 1),
             proj["normals_camera"],
-            colors[None].expand(C, N, D),
+            colors if colors.dim() == 3 else colors[None].expand(C, N, D),
         ],
         dim=-1,
     ).reshape(C * N, 17 + D)
