@@ -116,6 +116,14 @@ def test_stage2_starts_from_the_stage1_surfels_of_frame_0(toy, tmp_path):
     np.testing.assert_allclose(model.params["sdf"].detach().numpy(), rec["sdf"], rtol=1e-5)
     assert math.isclose(float(model.gamma.detach()), rec["gamma"], rel_tol=1e-5)
 
+    assert model.shade is None
+    # A stage-1 shading curve is carried over; without one, shade_knots starts a flat one.
+    knots = np.array([[0.1], [0.1], [0.3], [0.6]], np.float32)
+    shaded = initial_model_from_stage1({**s1, "shade": knots[None]}, use_sdf=True)
+    np.testing.assert_allclose(shaded.shade.detach().numpy(), knots, atol=2e-4)
+    flat = initial_model_from_stage1(s1, use_sdf=True, shade_knots=5).shade.detach().numpy()
+    assert flat.shape == (5, 1) and np.ptp(flat) < 1e-3
+
     # No step at frame 0: stage 2's first frame is stage 1's.
     _stage2(toy, tmp_path / "f2", {**FIT2, "iters_first": 0, "frames": 1})
     s2 = load_surfels(tmp_path / "f2" / "surfels.npz")

@@ -13,7 +13,14 @@ from surfphase.cameras import look_at
 from surfphase.fit.model import normal_to_quat
 from surfphase.render import camera_tensors, rasterize_surfels
 from surfphase.render.reference import rasterize_surfels_reference
-from surfphase.render.shading import camera_centres, facing_cosines, shading_curve, view_colors
+from surfphase.render.shading import (
+    camera_centres,
+    facing_cosines,
+    monotone_knots,
+    monotone_raw,
+    shading_curve,
+    view_colors,
+)
 
 torch.set_num_threads(2)
 
@@ -90,3 +97,12 @@ def test_the_curve_gets_gradients_through_the_renderer():
     # d(sum of image)/d(all knots of a channel) = Σ blending weights: the alpha sum.
     _, alphas, _ = rasterize_surfels(**s)
     np.testing.assert_allclose(knots.grad.sum(0).numpy(), [alphas.sum().item()] * 2, rtol=1e-9)
+
+
+def test_monotone_knots_round_trip_and_never_decrease():
+    knots = torch.tensor([[0.1], [0.1], [0.25], [0.7]], dtype=torch.float64)
+    back = monotone_knots(monotone_raw(knots, min_step=1e-6))
+    np.testing.assert_allclose(back.numpy(), knots.numpy(), atol=4e-6)
+    g = torch.Generator().manual_seed(0)
+    raw = torch.randn(9, 2, generator=g, dtype=torch.float64) * 3
+    assert (torch.diff(monotone_knots(raw), dim=0) > 0).all()
