@@ -79,3 +79,22 @@ def test_occlusion_changes_nothing_for_a_bubble_in_plain_view(scene):
     plain = visual_hull_surfels(cams, labels, images, bubble=1, grid=32)
     occl = visual_hull_surfels(cams, labels, images, bubble=1, grid=32, occlusion=True)
     np.testing.assert_array_equal(plain.points, occl.points)
+
+
+def test_occlusion_only_where_the_mask_is_smaller(scene):
+    cams, labels, images = scene
+    areas = [(lab == 2).sum() for lab in labels]
+    assert 0.3 < areas[0] / areas[1] < 0.75  # B's mask in "front" is 45 % of its side mask
+    plain = visual_hull_surfels(cams, labels, images, bubble=2, grid=48)
+    # A view counts as hiding part of B only below the ratio: at 0.3 neither view does,
+    # so the hull is the plain one; at the default (0.75) "front" does.
+    strict = visual_hull_surfels(
+        cams, labels, images, bubble=2, grid=48, occlusion=True, occlusion_ratio=0.3
+    )
+    np.testing.assert_array_equal(plain.points, strict.points)
+    every = visual_hull_surfels(
+        cams, labels, images, bubble=2, grid=48, occlusion=True, occlusion_ratio=np.inf
+    )
+    default = visual_hull_surfels(cams, labels, images, bubble=2, grid=48, occlusion=True)
+    np.testing.assert_array_equal(every.points, default.points)
+    assert len(default.points) > len(plain.points)

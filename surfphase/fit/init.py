@@ -112,6 +112,7 @@ def visual_hull_surfels(
     grid: int = 48,
     pad: float = 1.5,
     occlusion: bool = False,
+    occlusion_ratio: float = 0.75,
 ) -> HullSurfels:
     """Surfel seeds on the surface of the visual hull of the masks.
 
@@ -128,6 +129,15 @@ def visual_hull_surfels(
             voxel that ``o`` can hide there: one behind ``o``'s sphere centre (depth along
             that camera's axis) and outside ``o``'s sphere. Without it a bubble partly
             hidden behind another in one view loses the hidden part from its hull.
+            The nucleation region (id 0) is neither an occluder nor occluded: it sits on
+            the plate and is not a sphere, so neither its size nor "outside its sphere"
+            says anything about what is hidden.
+        occlusion_ratio: occlusion applies only in the views where the bubble's mask has
+            fewer than this fraction of the pixels of its largest mask over the views: a
+            sphere's silhouette is about the same size from cameras at the same distance,
+            so only a mask much smaller than in another view shows a hidden part. A
+            bubble seen whole in every view (a split, a false merge, a bubble leaving the
+            nucleation region) keeps its plain hull. ``inf``: every view.
 
     Returns:
         :class:`HullSurfels` (possibly empty when nothing is carved).
@@ -151,11 +161,16 @@ def visual_hull_surfels(
     # Other bubbles that may hide this one: (id, centre, voxels outside their sphere).
     occluders = (
         [(o, co, np.linalg.norm(pts - co, axis=1) > ro) for o, (co, ro) in spheres.items()
-         if o != bubble]
-        if bubble is not None and occlusion
+         if o not in (bubble, 0)]
+        if bubble not in (None, 0) and occlusion
         else []
     )  # fmt: skip
-    for cam, lab in zip(cameras, labels, strict=True):
+    if occluders:
+        areas = np.array([np.count_nonzero(lab == bubble) for lab in labels], dtype=np.float64)
+        hiding = areas < occlusion_ratio * areas.max()
+    else:
+        hiding = np.zeros(len(labels), dtype=bool)
+    for cam, lab, hides in zip(cameras, labels, hiding, strict=True):
         H, W = lab.shape
         z = cam.world_to_camera(pts)[:, 2]
         uv = cam.project(pts, distort=False)
@@ -165,7 +180,7 @@ def visual_hull_surfels(
         hit = np.zeros(pts.shape[0], dtype=bool)
         lv = lab[r[ok], c[ok]]
         hit[ok] = (lv == bubble) if bubble is not None else (lv >= 0)
-        for o, co, outside in occluders:
+        for o, co, outside in occluders if hides else ():
             on_o = np.zeros(pts.shape[0], dtype=bool)
             on_o[ok] = lv == o
             hit |= on_o & outside & (z > cam.world_to_camera(co[None])[0, 2])
