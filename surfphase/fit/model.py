@@ -196,11 +196,15 @@ class SurfelModel:
         return None if raw is None else monotone_knots(raw)
 
     def view_colors(self, viewmats: torch.Tensor) -> torch.Tensor:
-        """(C, N, D) colours seen by C cameras (``viewmats`` (C, 4, 4) world-to-camera);
-        without a shading curve every camera sees ``colors``."""
+        """Colours to render with, for C cameras (``viewmats`` (C, 4, 4) world-to-camera):
+        (C, N, D) with a shading curve; without one ``colors`` (N, D) itself, the same in
+        every camera (the renderer takes either)."""
         from surfphase.render.shading import view_colors
 
-        return view_colors(self.colors, self.means, self.quats, self.shade, viewmats)
+        shade = self.shade
+        if shade is None:
+            return self.colors
+        return view_colors(self.colors, self.means, self.quats, shade, viewmats)
 
     def opacities(self) -> torch.Tensor:
         """(N,) opacities: from the SDF, or the free parameter in the ablation."""

@@ -88,8 +88,7 @@ def register_bubbles(
         base = model.means.detach().clone()
         quats, scales = model.quats.detach(), model.scales.detach()
         opac = model.opacities().detach()
-        shaded = model.shade is not None
-        colors = (model.view_colors(viewmats) if shaded else model.colors).detach()
+        colors = model.view_colors(viewmats).detach()
     for it in range(steps):
         for g in opt.param_groups:
             g["lr"] = lr * lr_decay ** (it / max(steps - 1, 1))

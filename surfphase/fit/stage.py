@@ -316,7 +316,7 @@ def _render(model: SurfelModel, viewmats, Ks, width, height, backgrounds: torch.
         model.quats,
         model.scales,
         model.opacities(),
-        model.view_colors(viewmats) if model.shade is not None else model.colors,
+        model.view_colors(viewmats),
         viewmats,
         Ks,
         width,
