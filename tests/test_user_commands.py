@@ -283,3 +283,26 @@ def test_live_line_shows_running_jobs_and_their_logs(tmp_path):
     prog.tick()
     live = out.getvalue().rsplit("\r\033[K", 1)[-1]
     assert live.startswith("[  0/?      ] running: fit session=a 0m00s | frame 7/24 psnr 31.2")
+
+
+def test_every_help_text_prints():
+    """`--help` of every command and benchmark formats (argparse's % expansion included)."""
+    import argparse
+    import contextlib
+    import io
+
+    from surfphase.cli import build_parser
+
+    def walk(parser: argparse.ArgumentParser):
+        yield parser
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    yield from walk(sub)
+
+    parsers = list(walk(build_parser()))
+    assert len(parsers) > 10
+    for p in parsers:
+        with contextlib.redirect_stdout(io.StringIO()) as out:
+            p.print_help()
+        assert p.prog in out.getvalue()

@@ -113,7 +113,7 @@ def _bench(args: argparse.Namespace) -> int:
 def register_bench(bench_subparsers) -> None:
     p = bench_subparsers.add_parser(
         "mesh",
-        help="Chamfer distance (mm, % of true r_eq) of the meshes to ground-truth meshes",
+        help="Chamfer distance (mm, %% of true r_eq) of the meshes to ground-truth meshes",
     )
     p.add_argument("--fit", required=True, help="fit folder (surfels.npz)")
     p.add_argument("--ingest", required=True, help="ingest folder (cameras.json)")
