@@ -85,15 +85,26 @@ def _check_crop(crop, width: int, height: int, where: str) -> tuple[int, int, in
     return x0, y0, w, h
 
 
+def auto_scale(width: int, height: int, fit_size: int) -> float:
+    """Ingest scale that makes the fitted frame's longer side ``fit_size`` pixels.
+
+    ``width``, ``height``: the native (cropped) frame, pixels. Never upsamples (≤ 1).
+    """
+    if fit_size <= 0:
+        raise ValueError(f"fit_size must be a positive number of pixels, not {fit_size!r}")
+    return min(1.0, float(fit_size) / float(max(width, height)))
+
+
 def ingest_session(
     session: str,
     cameras: dict[str, Camera],
     videos: dict[str, Path],
     fps: float,
     frames: str | None = None,
-    scale: float = 1.0,
+    scale: float | str = 1.0,
     crop: tuple[int, int, int, int] | None = None,
     out: Path = Path("."),
+    fit_size: int | None = None,
 ) -> dict:
     """Undistort, crop and downscale a session's recordings into frame stacks in ``out``.
 
@@ -103,9 +114,11 @@ def ingest_session(
         videos: ``{camera name: recording path}`` (video file, image folder, TIFF stack).
         fps: the session's frame rate, frames per second.
         frames: ``start:stop[:step]`` in source frames, or None for all.
-        scale: output size factor after cropping (e.g. 0.25), in (0, 1].
+        scale: output size factor after cropping (e.g. 0.25), in (0, 1]; or ``"auto"``:
+            :func:`auto_scale` of the first camera's (cropped) native frame and ``fit_size``.
         crop: ``(x0, y0, w, h)`` pixels of the undistorted full-size image, or None.
         out: output folder.
+        fit_size: with ``scale="auto"``, the fitted frame's longer side, pixels.
 
     Returns:
         The metadata written to ``out/meta.json``.
@@ -115,8 +128,16 @@ def ingest_session(
         raise ValueError(f"{where}no camera recordings given")
     if not fps or fps <= 0:
         raise ValueError(f"{where}fps must be positive, not {fps!r}")
-    if not 0 < scale <= 1:
-        raise ValueError(f"{where}scale must be in (0, 1], not {scale!r}")
+    if scale == "auto":
+        if not fit_size:
+            raise ValueError(f"{where}scale: auto needs fit_size (pixels)")
+        first = cameras.get(next(iter(videos)))
+        if first is None:
+            raise ValueError(f"{where}camera {next(iter(videos))} is not in the calibration")
+        c0 = _check_crop(crop, first.width, first.height, where)
+        scale = auto_scale(*((c0[2], c0[3]) if c0 else (first.width, first.height)), fit_size)
+    if not isinstance(scale, int | float) or not 0 < scale <= 1:
+        raise ValueError(f"{where}scale must be in (0, 1] or auto, not {scale!r}")
     sources = {}
     for name, path in videos.items():
         if name not in cameras:

@@ -22,6 +22,16 @@ def parse_crop(text: str | None) -> tuple[int, int, int, int] | None:
     return values
 
 
+def _parse_scale(text: str) -> float | str:
+    """``--scale``: a factor in (0, 1] or ``auto``."""
+    if str(text).strip().lower() == "auto":
+        return "auto"
+    try:
+        return float(text)
+    except ValueError as e:
+        raise ValueError(f"--scale expects a number in (0, 1] or auto, not {text!r}") from e
+
+
 def _missing_cameras(session: str, rig: str | None, rigs_sheet: str | None, path: Path):
     """Raise the most useful error for a missing ``cameras.json``."""
     if rig and rigs_sheet and Path(rigs_sheet).is_file():
@@ -49,14 +59,15 @@ def _run(args: argparse.Namespace) -> int:
         parse_cam_args(args.cam),
         fps=args.fps,
         frames=args.frames,
-        scale=args.scale,
+        scale=_parse_scale(args.scale),
         crop=parse_crop(args.crop),
         out=Path(args.out),
+        fit_size=args.fit_size,
     )
     sizes = ", ".join(
         f"{n} {c['count']}×{c['size'][1]}×{c['size'][0]}" for n, c in meta["cameras"].items()
     )
-    print(f"session {args.session}: {sizes}; wrote {args.out}")
+    print(f"session {args.session}: {sizes} (scale {meta['scale']:.4g}); wrote {args.out}")
     return 0
 
 
@@ -80,7 +91,15 @@ def register(subparsers) -> None:
     )
     p.add_argument("--fps", type=float, required=True, help="frame rate, frames per second")
     p.add_argument("--frames", default=None, help="start:stop[:step] (stop exclusive)")
-    p.add_argument("--scale", type=float, default=1.0, help="downscale factor, e.g. 0.25")
+    p.add_argument(
+        "--scale", default="1.0", help="downscale factor, e.g. 0.25, or auto (see --fit-size)"
+    )
+    p.add_argument(
+        "--fit-size",
+        type=int,
+        default=None,
+        help="with --scale auto: the fitted frame's longer side, pixels",
+    )
     p.add_argument("--crop", default=None, help="x0,y0,w,h pixels of the undistorted image")
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_run)

@@ -152,8 +152,56 @@ def _sheet_path(path: Path, sheet_dir: Path, camp: Path) -> str:
     return str(path)
 
 
-def _config_text(project_config: Path | None) -> str:
-    """The project's config/config.yaml with the sheet paths of a campaign."""
+def native_sizes(found: dict[str, dict[str, Path]]) -> dict[str, tuple[int, int] | str]:
+    """``{session: (width, height)}`` of each session's first camera, native pixels.
+
+    A recording that cannot be read yet gets the reason instead of a size (the ingest
+    of that session will stop with it, naming the file).
+    """
+    from surfphase.video import open_video
+
+    sizes: dict[str, tuple[int, int] | str] = {}
+    for session, cams in sorted(found.items()):
+        path = cams[sorted(cams)[0]]
+        try:
+            h, w = open_video(path).shape
+            sizes[session] = (int(w), int(h))
+        except Exception as e:  # noqa: BLE001 - any reader error is reported, not raised
+            sizes[session] = f"{path} not readable now ({e})"
+    return sizes
+
+
+def _ingest_comment(sizes: dict[str, tuple[int, int] | str], fit_size: int) -> str:
+    """Comment lines saying what ``scale: auto`` does to each session's frames."""
+    from surfphase.ingest import auto_scale
+
+    lines = [
+        f"# scale: auto fits each session at fit_size = {fit_size} px on the longer side",
+        "# (about 3 s per frame for stage 1 on 2 CPU cores; raise it on a GPU):",
+    ]
+    for session, size in sizes.items():
+        if isinstance(size, str):
+            lines.append(f"#   {session}: {size}")
+            continue
+        w, h = size
+        k = auto_scale(w, h, fit_size)
+        fw, fh = max(1, round(w * k)), max(1, round(h * k))
+        lines.append(f"#   {session}: native {w}x{h} -> fitted {fw}x{fh} (scale {k:.4g})")
+    return "\n".join(lines) + "\n"
+
+
+def _config_text(
+    project_config: Path | None,
+    clips: Path | None = None,
+    sizes: dict[str, tuple[int, int] | str] | None = None,
+    fit_size: int = 160,
+) -> str:
+    """The project's config/config.yaml with the sheet paths of a campaign.
+
+    Refinement (prior, SDEdit, stage 2) is on only with ``clips`` (the monocular clips
+    of the video prior); the ingest scale is ``auto`` (per session, from its native
+    ``sizes``), with a comment saying what it gives.
+    """
     if project_config and project_config.is_file():
         text = project_config.read_text()
         lines = [ln for ln in text.splitlines() if not ln.startswith("#")]
@@ -162,6 +210,30 @@ def _config_text(project_config: Path | None) -> str:
         text = re.sub(r"(?m)^rigs:.*$", "rigs: config/rigs.tsv", text)
     else:
         text = "sessions: config/sessions.tsv\nrigs: config/rigs.tsv\nresults: results\n"
+    scale = f"  scale: auto          # per session, see above\n  fit_size: {fit_size}\n"
+    comment = _ingest_comment(sizes or {}, fit_size)
+    if re.search(r"(?m)^ingest:", text):
+        text = re.sub(r"(?m)^  (scale|fit_size):.*\n", "", text)
+        text = re.sub(r"(?m)^ingest:.*\n", lambda m: comment + m.group(0) + scale, text, count=1)
+    else:
+        text += comment + "ingest:\n" + scale
+    on = clips is not None
+    clip_line = f"  clips: {clips}" if on else "  clips: null       # monocular clips (--clips)"
+    if re.search(r"(?m)^  clips:", text):
+        text = re.sub(r"(?m)^  clips:.*$", lambda _m: clip_line, text, count=1)
+    else:
+        text += f"prior:\n{clip_line}\n"
+    enabled = (
+        "  enabled: true       # refinement runs: monocular clips were given (--clips)"
+        if on
+        else "  enabled: false      # no monocular clips (--clips): stage 1 is the final fit"
+    )
+    if re.search(r"(?m)^refine:", text):
+        text = re.sub(
+            r"(?ms)^(refine:.*?\n)  enabled:[^\n]*", lambda m: m.group(1) + enabled, text, count=1
+        )
+    else:
+        text += f"refine:\n{enabled}\n"
     head = (
         "# SurfPhase campaign, written by `surfphase new-campaign`. Paths are relative to the\n"
         "# campaign folder; every key is documented in workflow/schemas/config.schema.yaml.\n"
@@ -176,17 +248,25 @@ def new_campaign(
     calib: Path | None = None,
     project_config: Path | None = None,
     force: bool = False,
+    clips: Path | None = None,
 ) -> dict:
     """Write a campaign's config and sheets for the videos under ``videos``.
 
     Returns ``{"sessions": {...}, "cameras": {label: camN}, "fps": {session: fps}}``.
     ``fps`` (frames per second) overrides the headers; it is required when a session
-    has no lab-format video. Raises ValueError/FileNotFoundError naming the file or session.
+    has no lab-format video. ``clips``: the video prior's monocular clips; refinement is
+    on only with them (they are checked here). Raises ValueError/FileNotFoundError naming
+    the file or session.
     """
     videos, out = Path(videos).resolve(), Path(out).resolve()
     config_dir = out / "config"
     if not force and any((config_dir / n).exists() for n in ("config.yaml", "sessions.tsv")):
         raise ValueError(f"{config_dir}: already holds a campaign (use --force to overwrite)")
+    if clips is not None:
+        from surfphase.prior.clips import find_clips
+
+        clips = Path(clips).resolve()
+        find_clips(clips)  # raises, naming the folder, when it holds no clips
     found = find_videos(videos)
     labels = sorted({c for cams in found.values() for c in cams})
     if len(labels) < 2:
@@ -256,12 +336,16 @@ def new_campaign(
     atomic_write_text(config_dir / "board.yaml", BOARD_YAML)
     atomic_write_text(config_dir / "rigs.tsv", "\n".join(rig_rows) + "\n")
     atomic_write_text(config_dir / "sessions.tsv", "\n".join(rows) + "\n")
-    atomic_write_text(config_dir / "config.yaml", _config_text(project_config))
+    sizes = native_sizes(found)
+    clip_path = _sheet_path(clips, out, out) if clips is not None else None
+    atomic_write_text(config_dir / "config.yaml", _config_text(project_config, clip_path, sizes))
     return {
         "sessions": {s: {cam_of[c]: str(p) for c, p in v.items()} for s, v in found.items()},
         "cameras": cam_of,
         "fps": rates,
         "calib": {c: str(p) for c, p in calib_dirs.items()},
+        "native_sizes": sizes,
+        "refine": clips is not None,
     }
 
 
@@ -276,6 +360,7 @@ def new_campaign_cmd(args: argparse.Namespace) -> int:
         calib=Path(args.calib) if args.calib else None,
         project_config=project_root() / "config" / "config.yaml",
         force=args.force,
+        clips=Path(args.clips) if args.clips else None,
     )
     print(f"Campaign written to {out / 'config'}:")
     print(f"  {len(info['sessions'])} session(s): " + ", ".join(sorted(info["sessions"])))
@@ -287,6 +372,10 @@ def new_campaign_cmd(args: argparse.Namespace) -> int:
             "  calibration: put each camera's ChArUco images in "
             + ", ".join(info["calib"][c] for c in empty)
         )
+    print(
+        "  refinement: "
+        + ("on (video prior trained on --clips)" if info["refine"] else "off (no --clips)")
+    )
     print(f"  check the board in {out / 'config' / 'board.yaml'}")
     q = shlex.quote(str(out))
     print("Next:")
@@ -313,6 +402,11 @@ def register(subparsers) -> None:
         "--calib",
         metavar="DIR",
         help="calibration images, one subfolder per camera (default: VIDEOS/calib)",
+    )
+    p.add_argument(
+        "--clips",
+        metavar="DIR",
+        help="monocular clips for the video prior: turns refinement (stage 2) on",
     )
     p.add_argument("--force", action="store_true", help="overwrite an existing config")
     p.set_defaults(func=new_campaign_cmd)

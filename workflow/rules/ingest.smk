@@ -18,6 +18,7 @@ rule ingest:
             else ""
         ),
         scale=config["ingest"]["scale"],
+        fit_size=config["ingest"]["fit_size"],
         crop=(
             "--crop " + ",".join(str(v) for v in config["ingest"]["crop"])
             if config["ingest"].get("crop")
@@ -33,5 +34,6 @@ rule ingest:
     shell:
         "{params.surfphase} ingest --session {wildcards.session} --rig {params.rig:q}"
         " --rigs-sheet {params.rigs_sheet:q} --cameras {params.cameras:q} {params.cams}"
-        " --fps {params.fps} {params.frames} --scale {params.scale} {params.crop}"
+        " --fps {params.fps} {params.frames} --scale {params.scale}"
+        " --fit-size {params.fit_size} {params.crop}"
         " --out {output:q} > {log:q} 2>&1"

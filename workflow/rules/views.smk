@@ -39,7 +39,7 @@ rule train_prior:
         directory(f"{RESULTS}/prior"),
     params:
         surfphase=SURFPHASE,
-        clips=prior_clips(),
+        clips=lambda wc: prior_clips(),
         backend=PRIOR.get("backend", "embedded"),
         settings=lambda wc: json.dumps(prior_settings()),
         device=config["device"],

@@ -39,8 +39,14 @@ def view_strength(view):
 
 
 def prior_clips():
-    """The clips setting (folder or glob), as given in the config."""
-    return str(PRIOR.get("clips", "demo/clips"))
+    """The clips setting (folder or glob), as given in the config; refinement needs it."""
+    clips = PRIOR.get("clips")
+    if not clips:
+        raise WorkflowError(
+            "refine: enabled: true needs prior: clips (a folder of monocular clips); "
+            "set it, or set refine: enabled: false to make stage 1 the final fit"
+        )
+    return str(clips)
 
 
 def prior_clip_inputs(wc):
