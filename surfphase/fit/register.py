@@ -92,7 +92,10 @@ def register_bubbles(
     for it in range(steps):
         for g in opt.param_groups:
             g["lr"] = lr * lr_decay ** (it / max(steps - 1, 1))
-        means = base + torch.cat([shift, zero])[row_t]
+        # index_select, not ``[row_t]``: the backward of advanced indexing with repeated
+        # indices accumulates through index_put_, whose threaded CPU kernel sums in a
+        # different order on every run once there are ~10k surfels (not bit-for-bit).
+        means = base + torch.cat([shift, zero]).index_select(0, row_t)
         rgb, alpha, _ = rasterize_surfels(means, quats, scales, opac, colors, viewmats, Ks, W, H)
         img = rgb + (1.0 - alpha) * background
         loss = (img - observed).abs().flatten(1).mean(dim=1).sum()

@@ -63,7 +63,11 @@ def shading_curve(cos: Tensor, knots: Tensor) -> Tensor:
     x = cos.clamp(0.0, 1.0) * (K - 1)
     i0 = x.detach().floor().clamp(max=K - 2).long()
     w = (x - i0.to(x.dtype))[..., None]
-    return knots[i0] * (1.0 - w) + knots[i0 + 1] * w
+    # index_select (backward index_add_, a fixed order), not knots[i0]: see fit/register.
+    flat = i0.reshape(-1)
+    lo = knots.index_select(0, flat).reshape(*i0.shape, knots.shape[1])
+    hi = knots.index_select(0, flat + 1).reshape(*i0.shape, knots.shape[1])
+    return lo * (1.0 - w) + hi * w
 
 
 def monotone_knots(raw: Tensor) -> Tensor:

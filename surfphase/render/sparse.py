@@ -164,7 +164,9 @@ def _segmented_exclusive_cumsum(x: Tensor, seg_start: Tensor) -> Tensor:
     x64 = x.to(torch.float64)
     incl = torch.cumsum(x64, 0)
     excl = incl - x64
-    return (excl - excl[seg_start]).to(x.dtype)
+    # index_select: its backward (index_add_) sums in a fixed order; ``excl[seg_start]``
+    # would accumulate through index_put_, which is not bit-for-bit on threaded CPUs.
+    return (excl - excl.index_select(0, seg_start)).to(x.dtype)
 
 
 def _render_band(
