@@ -174,8 +174,10 @@ def _open_mraw(path: Path) -> LabVideo:
         raise ValueError(f"{head}: empty recording ({count} frames of {w}x{h})")
     if size < count * frame_bytes:
         raise ValueError(
-            f"{data}: {size} bytes, but {head.name} announces {count} frames of {w}x{h} "
-            f"at {bits} bit ({count * frame_bytes} bytes)"
+            f"{data}: truncated recording (cut short, e.g. by an interrupted copy): "
+            f"{size} bytes, but {head.name} announces {count} frames of {w}x{h} "
+            f"at {bits} bit ({count * frame_bytes} bytes; {size // frame_bytes} whole "
+            "frames present). Copy the recording again."
         )
     # 16-bit words with the significant bits at the top are shifted down.
     shift = 16 - effective if bits == 16 and side == "higher" else 0
@@ -257,8 +259,22 @@ def _open_cine(path: Path) -> LabVideo:
         f.seek(off_offsets)
         table = f.read(8 * count)
         if len(table) < 8 * count:
-            raise ValueError(f"{path}: truncated image offset table ({count} images announced)")
+            raise ValueError(
+                f"{path}: truncated recording (cut short, e.g. by an interrupted copy): "
+                f"{size} bytes end inside the image offset table of the {count} images "
+                "its header announces. Copy the recording again."
+            )
         offsets = np.frombuffer(table, dtype="<i8").copy()
+        # The images must all lie in the file: the one stored last (the largest offset)
+        # is read up to its end; a file cut short ends before it.
+        last = int(np.argmax(offsets)) if count > 0 else 0
+        image_end = None
+        if count > 0 and 0 <= offsets[last] <= size - 8:
+            f.seek(int(offsets[last]))
+            annotation = struct.unpack("<I", f.read(4))[0]
+            if annotation >= 8 and offsets[last] + annotation <= size:
+                f.seek(int(offsets[last]) + annotation - 4)
+                image_end = int(offsets[last]) + annotation + struct.unpack("<I", f.read(4))[0]
 
     if compression not in (0, 2) or bi_compression != 0:
         raise ValueError(
@@ -273,6 +289,15 @@ def _open_cine(path: Path) -> LabVideo:
     itemsize = 2 if bit_count in (16, 48) else 1
     h, w = abs(height), width
     stride = (w * channels * itemsize + 3) // 4 * 4  # DIB rows are padded to 4 bytes
+    if image_end is None or image_end > size:
+        whole = int(np.sum(offsets + 8 + stride * h <= size))
+        ends = f"ends at byte {image_end}" if image_end is not None else "is cut"
+        raise ValueError(
+            f"{path}: truncated recording (cut short, e.g. by an interrupted copy): the "
+            f"file has {size} bytes, but image {last} of the {count} its header announces "
+            f"starts at byte {int(offsets[last])} and {ends} (about {whole} whole images "
+            "present). Copy the recording again."
+        )
     real_bpp = setup_uint(_SETUP_REALBPP, "I")
     bit_depth = 8 * itemsize
     if itemsize == 2 and real_bpp and 8 < real_bpp <= 16:

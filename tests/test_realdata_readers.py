@@ -85,3 +85,19 @@ def test_absent_data_skips_or_fails_when_required(tmp_path, monkeypatch):
     monkeypatch.setenv(REQUIRE_ENV, "1")
     with pytest.raises(pytest.fail.Exception, match=f"{REQUIRE_ENV}=1 requires it"):
         realdata("photron", "beam.cihx")
+
+
+@pytest.mark.parametrize("name", ["photron/ball_12bit", "photron/beam", "phantom/cine_781"])
+def test_cut_copy_of_a_real_recording_is_truncated(tmp_path, name):
+    folder, stem = name.split("/")
+    if folder == "photron":
+        head = realdata(folder, f"{stem}.cihx")
+        (tmp_path / head.name).write_bytes(head.read_bytes())
+        data = head.with_suffix(".mraw")
+    else:
+        data = realdata(folder, f"{stem}.cine")
+    cut = tmp_path / data.name
+    cut.write_bytes(data.read_bytes()[: int(data.stat().st_size * 0.8)])
+    with pytest.raises(ValueError, match="truncated recording") as e:
+        open_video(cut)
+    assert str(cut) in str(e.value)
