@@ -9,7 +9,8 @@
 * anything else: a video file read with ``cv2.VideoCapture``.
 
 Every reader yields 2D grayscale frames (colour is converted with OpenCV's luma
-weights) as ``uint8`` or ``uint16`` arrays, (H, W) pixels, and reports ``bit_depth``
+weights; the Bayer mosaic of a colour high-speed camera's MRAW or CINE file by
+:func:`surfphase.labformats.bayer_to_grey`, (R + 2G + B)/4) as ``uint8`` or ``uint16`` arrays, (H, W) pixels, and reports ``bit_depth``
 (8 or 16) so callers can normalise by the full scale ``2**bit_depth − 1``.
 
 A recording cut short (as by an interrupted copy) is refused on opening with a

@@ -35,7 +35,10 @@ def test_photron_equals_pymraw(name, given):
     head = realdata("photron", f"{name}.cihx")
     ref, cih = pyMRAW.load_video(str(head))
     ref = np.asarray(ref)
-    src = open_video(head.with_suffix(given))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the header says monochrome: no colour warning
+        src = open_video(head.with_suffix(given))
+    assert src.header["colour"] == "mono"  # ball_12bit: "Raw" data of a -M (mono) model
     n, shape, bits, fps = PHOTRON[name]
     assert (src.kind, src.count, src.shape, src.bit_depth, src.fps) == ("mraw", n, shape, bits, fps)
     assert ref.shape == (n, *shape) and cih["Total Frame"] == n
@@ -58,7 +61,10 @@ def test_phantom_equals_pims(name):
         ref = np.stack([np.asarray(f) for f in cine])
         ref_fps = float(cine.frame_rate)
         cine.close()
-    src = open_video(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        src = open_video(path)
+    assert src.header["colour"] == "mono" and src.header["cfa"] == cine.cfa == 0
     n, shape, bits, fps = PHANTOM[name]
     assert (src.kind, src.count, src.shape, src.bit_depth, src.fps) == ("cine", n, shape, bits, fps)
     assert ref.shape == (n, *shape) and ref_fps == fps
