@@ -153,14 +153,18 @@ def ingest_session(
         except ValueError as e:
             raise ValueError(f"{where}camera {name}: {e}") from e
     names = list(sources)
+    counts = {name: sources[name].count for name in names}
+    if len(set(counts.values())) > 1:
+        # Synchronised cameras record the same number of frames: the shorter recording
+        # was most likely cut short (an interrupted copy) even if its file looks whole.
+        short = min(counts, key=counts.get)
+        listing = ", ".join(f"{n} {sources[n].path} has {counts[n]} frames" for n in names)
+        raise ValueError(
+            f"{where}cameras have different frame counts ({listing}): camera {short} "
+            f"{sources[short].path} may be truncated (cut short, e.g. by an interrupted "
+            "copy); copy it again, or give both recordings the same frames"
+        )
     ref = sources[names[0]]
-    for name in names[1:]:
-        src = sources[name]
-        if src.count != ref.count:
-            raise ValueError(
-                f"{where}cameras have different frame counts: {names[0]} {ref.path} has "
-                f"{ref.count} frames, {name} {src.path} has {src.count}"
-            )
     for name in names:
         src, cam = sources[name], cameras[name]
         if src.shape != (cam.height, cam.width):

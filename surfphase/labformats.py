@@ -17,9 +17,18 @@ may be given.
 Phantom: a ``.cine`` file is a CINEFILEHEADER (44 bytes), a BITMAPINFOHEADER (40 bytes),
 a SETUP block (frame rate, real bit depth), a table of 64-bit image offsets, and per
 image an annotation block followed by the pixels, bottom row first (a DIB), rows padded
-to 4 bytes. Uncompressed monochrome (8 or 16 bit) and colour (24/48 bit, converted to
-grey) files are read; packed and compressed files raise ``ValueError`` (save them
-from the camera software as 16-bit). pycine is not used: it reads 16-bit files only and
+to 4 bytes. Uncompressed monochrome (8 or 16 bit), interpolated colour (24/48 bit,
+converted to grey) and uninterpolated colour (a Bayer mosaic, 8 or 16 bit: header
+``Compression`` 2 with a SETUP ``CFA`` code) files are read; packed and compressed files
+raise ``ValueError`` (save them from the camera software as 16-bit).
+
+Colour sensors: a Bayer mosaic is converted to grey by :func:`bayer_to_grey`, the same
+for any of the four 2×2 phases, so the phase need not be known: grey = (R + 2G + B)/4.
+Photron headers say ``Color Type`` (``.cih``) or ``colorInfo/type`` (``.cihx``):
+``Mono``; ``Color`` (a colour sensor's mosaic); ``Raw`` (raw sensor data, colour or not:
+told apart by the camera model, ``...K-C`` colour, ``...K-M`` monochrome). A header that
+does not say is read as monochrome with a warning naming the file. Phantom: SETUP ``CFA``
+(0 grey sensor, 1-4 a Bayer pattern) with the file header's ``Compression``. pycine is not used: it reads 16-bit files only and
 its package requires ``opencv-python``, which clashes with the project's
 ``opencv-contrib-python-headless``. The layout follows Vision Research's file format
 description.
@@ -27,9 +36,12 @@ description.
 
 from __future__ import annotations
 
+import re
 import shutil
 import struct
 import tempfile
+import warnings
+import xml.etree.ElementTree as ET
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +56,7 @@ _BITMAP_HEADER = struct.Struct("<IiiHHIIiiII")  # BITMAPINFOHEADER, 40 bytes
 _SETUP_FRAMERATE16 = 0  # WORD: frame rate, older files
 _SETUP_LENGTH = 142  # WORD: size of the SETUP block in this file
 _SETUP_FRAMERATE = 768  # UINT: frame rate, fps
+_SETUP_CFA = 808  # UINT: colour filter array, low byte 0 grey, 1-4 a Bayer pattern
 _SETUP_REALBPP = 896  # UINT: significant bits per pixel (8..16)
 _SETUP_WHITELEVEL = 5736  # UINT: the value of full white
 _SETUP_SIZE = 12432  # size of the SETUP block in current files
@@ -143,6 +156,64 @@ def unpack_uint12(packed: np.ndarray) -> np.ndarray:
     return out.reshape(-1)
 
 
+def bayer_to_grey(mosaic: np.ndarray) -> np.ndarray:
+    """(H, W) Bayer mosaic (uint8/uint16, any of the RGGB/BGGR/GRBG/GBRG phases) →
+    (H, W) grey of the same dtype and range.
+
+    The 3×3 binomial filter ``[1 2 1]ᵀ[1 2 1] / 16`` (edges mirrored, which keeps the
+    mosaic's parity): at every pixel it weighs the pixel's own colour ×4, its 4
+    diagonal neighbours (the same colour, or the opposite of red/blue) ×1 and its 4 side
+    neighbours ×2, which for every phase sums to (R + 2G + B)/4 of the 2×2 cell. A flat
+    colour comes out exactly (R + 2G + B)/4; detail is blurred by [1 2 1]/4 per axis,
+    the resolution a demosaic recovers.
+    """
+    import cv2
+
+    if mosaic.ndim != 2 or min(mosaic.shape) < 2:
+        raise ValueError(f"Bayer mosaic must be 2D, at least 2×2, not {mosaic.shape}")
+    k = np.outer([1.0, 2.0, 1.0], [1.0, 2.0, 1.0]).astype(np.float32) / 16
+    grey = cv2.filter2D(mosaic.astype(np.float32), -1, k, borderType=cv2.BORDER_REFLECT_101)
+    return np.rint(grey).astype(mosaic.dtype)
+
+
+def _cihx_fields(head: Path) -> dict[str, str | None]:
+    """``colorInfo/type`` and ``deviceInfo/deviceName`` of a CIHX header (pyMRAW's
+    header parse keeps neither)."""
+    text = head.read_bytes().decode("utf-8", errors="ignore")
+    a, b = text.find("<cih>"), text.rfind("</cih>")
+    out: dict[str, str | None] = {"type": None, "device": None}
+    if a < 0 or b < 0:
+        return out
+    try:
+        root = ET.fromstring(text[a : b + len("</cih>")])
+    except ET.ParseError:
+        return out
+    out["type"] = root.findtext("imageDataInfo/colorInfo/type")
+    out["device"] = root.findtext("deviceInfo/deviceName")
+    return out
+
+
+def photron_colour(head: Path, cih: dict) -> tuple[str, str]:
+    """(``"mono"``, ``"bayer"`` or ``"unknown"``, the header's words for it) of a Photron
+    recording; see the module docstring for the rules."""
+    if head.suffix.lower() == ".cihx":
+        f = _cihx_fields(head)
+        ctype, device = f["type"], f["device"]
+    else:
+        ctype, device = cih.get("Color Type"), cih.get("Camera Type")
+    words = f"colour type {ctype!r}, camera {device!r}"
+    kind = str(ctype or "").strip().lower()
+    if kind == "mono":
+        return "mono", words
+    if kind in ("color", "colour", "bayer"):
+        return "bayer", words
+    if kind == "raw":
+        model = re.search(r"\dK-([CM])\b", str(device or ""), re.IGNORECASE)
+        if model:
+            return ("bayer" if model.group(1).upper() == "C" else "mono"), words
+    return "unknown", words
+
+
 def _open_mraw(path: Path) -> LabVideo:
     head, data = _mraw_pair(path)
     for p in (head, data):
@@ -174,9 +245,20 @@ def _open_mraw(path: Path) -> LabVideo:
         raise ValueError(f"{head}: empty recording ({count} frames of {w}x{h})")
     if size < count * frame_bytes:
         raise ValueError(
-            f"{data}: {size} bytes, but {head.name} announces {count} frames of {w}x{h} "
-            f"at {bits} bit ({count * frame_bytes} bytes)"
+            f"{data}: truncated recording (cut short, e.g. by an interrupted copy): "
+            f"{size} bytes, but {head.name} announces {count} frames of {w}x{h} "
+            f"at {bits} bit ({count * frame_bytes} bytes; {size // frame_bytes} whole "
+            "frames present). Copy the recording again."
         )
+    colour, words = photron_colour(head, cih)
+    if colour == "unknown":
+        warnings.warn(
+            f"{head}: the header ({words}) does not say whether the sensor is monochrome "
+            "or colour; read as monochrome (a colour sensor's Bayer mosaic would stay in "
+            "the frames as a fine checkerboard)",
+            stacklevel=3,
+        )
+    bayer = colour == "bayer"
     # 16-bit words with the significant bits at the top are shifted down.
     shift = 16 - effective if bits == 16 and side == "higher" else 0
     if bits == 8:
@@ -188,13 +270,14 @@ def _open_mraw(path: Path) -> LabVideo:
 
     def frame(i: int) -> np.ndarray:
         if bits == 12:
-            return unpack_uint12(np.asarray(raw[i])).reshape(h, w)
-        img = np.array(raw[i])
+            img = unpack_uint12(np.asarray(raw[i])).reshape(h, w)
+        else:
+            img = np.array(raw[i])
         if bits == 16:
             img = img.astype(np.uint16, copy=False)
             if shift:
                 img >>= shift
-        return img
+        return bayer_to_grey(img) if bayer else img
 
     fps = cih.get("Record Rate(fps)")
     return LabVideo(
@@ -204,7 +287,7 @@ def _open_mraw(path: Path) -> LabVideo:
         bit_depth=effective if bits > 8 else 8,
         fps=float(fps) if fps not in (None, "") else None,
         kind="mraw",
-        header=cih,
+        header={**cih, "colour": "bayer → grey (R+2G+B)/4" if bayer else "mono"},
         _frame=frame,
     )
 
@@ -257,8 +340,22 @@ def _open_cine(path: Path) -> LabVideo:
         f.seek(off_offsets)
         table = f.read(8 * count)
         if len(table) < 8 * count:
-            raise ValueError(f"{path}: truncated image offset table ({count} images announced)")
+            raise ValueError(
+                f"{path}: truncated recording (cut short, e.g. by an interrupted copy): "
+                f"{size} bytes end inside the image offset table of the {count} images "
+                "its header announces. Copy the recording again."
+            )
         offsets = np.frombuffer(table, dtype="<i8").copy()
+        # The images must all lie in the file: the one stored last (the largest offset)
+        # is read up to its end; a file cut short ends before it.
+        last = int(np.argmax(offsets)) if count > 0 else 0
+        image_end = None
+        if count > 0 and 0 <= offsets[last] <= size - 8:
+            f.seek(int(offsets[last]))
+            annotation = struct.unpack("<I", f.read(4))[0]
+            if annotation >= 8 and offsets[last] + annotation <= size:
+                f.seek(int(offsets[last]) + annotation - 4)
+                image_end = int(offsets[last]) + annotation + struct.unpack("<I", f.read(4))[0]
 
     if compression not in (0, 2) or bi_compression != 0:
         raise ValueError(
@@ -273,7 +370,27 @@ def _open_cine(path: Path) -> LabVideo:
     itemsize = 2 if bit_count in (16, 48) else 1
     h, w = abs(height), width
     stride = (w * channels * itemsize + 3) // 4 * 4  # DIB rows are padded to 4 bytes
+    if image_end is None or image_end > size:
+        whole = int(np.sum(offsets + 8 + stride * h <= size))
+        ends = f"ends at byte {image_end}" if image_end is not None else "is cut"
+        raise ValueError(
+            f"{path}: truncated recording (cut short, e.g. by an interrupted copy): the "
+            f"file has {size} bytes, but image {last} of the {count} its header announces "
+            f"starts at byte {int(offsets[last])} and {ends} (about {whole} whole images "
+            "present). Copy the recording again."
+        )
     real_bpp = setup_uint(_SETUP_REALBPP, "I")
+    cfa = setup_uint(_SETUP_CFA, "I")
+    pattern = (cfa or 0) & 0xFF
+    bayer = pattern != 0 and channels == 1
+    if bayer and compression != 2:
+        warnings.warn(
+            f"{path}: the SETUP names a colour sensor (CFA {cfa:#x}) but the header says "
+            f"the {bit_count}-bit images are interpolated (compression {compression}); "
+            "read as grey",
+            stacklevel=3,
+        )
+        bayer = False
     bit_depth = 8 * itemsize
     if itemsize == 2 and real_bpp and 8 < real_bpp <= 16:
         bit_depth = int(real_bpp)
@@ -300,9 +417,10 @@ def _open_cine(path: Path) -> LabVideo:
         if channels == 3:  # BGR -> grey (ITU-R 601 luma), kept in the input's range
             grey = img[..., 2] * 0.299 + img[..., 1] * 0.587 + img[..., 0] * 0.114
             return np.ascontiguousarray(np.rint(grey).astype(img.dtype))
-        return np.ascontiguousarray(img[..., 0]).astype(
+        grey = np.ascontiguousarray(img[..., 0]).astype(
             np.uint16 if itemsize == 2 else np.uint8, copy=False
         )
+        return bayer_to_grey(grey) if bayer else grey
 
     return LabVideo(
         path=path,
@@ -317,6 +435,11 @@ def _open_cine(path: Path) -> LabVideo:
             "real_bpp": real_bpp,
             "bi_size_image": bi_size_image,
             "header_size": header_size,
+            "compression": compression,
+            "cfa": cfa,
+            "colour": (
+                "bayer → grey (R+2G+B)/4" if bayer else ("bgr → grey" if channels == 3 else "mono")
+            ),
         },
         _frame=frame,
     )

@@ -9,12 +9,20 @@
 * anything else: a video file read with ``cv2.VideoCapture``.
 
 Every reader yields 2D grayscale frames (colour is converted with OpenCV's luma
-weights) as ``uint8`` or ``uint16`` arrays, (H, W) pixels, and reports ``bit_depth``
+weights; the Bayer mosaic of a colour high-speed camera's MRAW or CINE file by
+:func:`surfphase.labformats.bayer_to_grey`, (R + 2G + B)/4) as ``uint8`` or ``uint16`` arrays, (H, W) pixels, and reports ``bit_depth``
 (8 or 16) so callers can normalise by the full scale ``2**bit_depth − 1``.
+
+A recording cut short (as by an interrupted copy) is refused on opening with a
+ValueError naming the file and saying "truncated": a multi-page TIFF whose pages or
+next-page pointers lie past its end, or with fewer pages than its own metadata announces
+(:func:`check_tiff_complete`); an MRAW or CINE file shorter than its header's frames.
 """
 
 from __future__ import annotations
 
+import logging
+import struct
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
@@ -117,19 +125,105 @@ class ImageFolder(VideoSource):
             yield img
 
 
+class _TiffLog(logging.Handler):
+    """Collects tifffile's log messages (it logs, not raises, e.g. 'invalid page offset')."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+def _next_ifd_offset(tif: tifffile.TiffFile, page_offset: int) -> int | None:
+    """The next-IFD pointer stored after the IFD at ``page_offset`` (0: last page), or
+    None when the IFD itself does not fit in the file."""
+    fh, t = tif.filehandle, tif.tiff
+    fh.seek(page_offset)
+    raw = fh.read(t.tagnosize)
+    if len(raw) < t.tagnosize:
+        return None
+    ntags = struct.unpack(t.tagnoformat, raw)[0]
+    fh.seek(page_offset + t.tagnosize + ntags * t.tagsize)
+    raw = fh.read(t.offsetsize)
+    if len(raw) < t.offsetsize:
+        return None
+    return int(struct.unpack(t.offsetformat, raw)[0])
+
+
+def _announced_frames(tif: tifffile.TiffFile) -> int | None:
+    """The frame count a TIFF's own metadata announces (ImageJ ``images``; tifffile's
+    shaped ``shape`` over the first page's), or None when it announces none."""
+    ij = tif.imagej_metadata or {}
+    if ij.get("images"):
+        return int(ij["images"])
+    shaped = tif.shaped_metadata
+    if shaped and len(shaped) == 1 and shaped[0].get("shape"):
+        # The array written, in pages of the first page's shape (2D grey or RGB).
+        total, per_page = np.prod(shaped[0]["shape"]), np.prod(tif.pages[0].shape)
+        if per_page and total % per_page == 0:
+            return int(total // per_page)
+    return None
+
+
+def check_tiff_complete(tif: tifffile.TiffFile, path: Path) -> int:
+    """The page count of a multi-page TIFF after checking it is whole; raises ValueError
+    naming ``path`` and saying "truncated" when it was cut short (an interrupted copy).
+
+    Evidence, from the file's structure: a page's image data or the last IFD's next-page
+    pointer lying past the end of the file (tifffile then logs 'invalid page offset' and
+    reads fewer pages); from its metadata: fewer pages than ImageJ's or tifffile's own
+    header announces.
+    """
+    size = tif.filehandle.size
+    n = len(tif.pages)
+    problems: list[str] = []
+    tif.pages.useframes = True  # light TiffFrames: offsets and byte counts, no tag parsing
+    for i in range(n):
+        try:
+            page = tif.pages[i]
+        except (tifffile.TiffFileError, struct.error, ValueError, OSError):
+            problems.append(f"page {i}'s directory (IFD) is cut")
+            break
+        ends = [int(o) + int(c) for o, c in zip(page.dataoffsets, page.databytecounts, strict=True)]
+        if ends and max(ends) > size:
+            problems.append(f"page {i}'s image data ends at byte {max(ends)}")
+            break
+    if n and not problems:
+        nxt = _next_ifd_offset(tif, int(tif.pages[n - 1].offset))
+        if nxt is None or nxt >= size:
+            problems.append(f"page {n - 1} points to a next page at byte {nxt}")
+    announced = _announced_frames(tif)
+    if announced is not None and announced > n:
+        problems.append(f"its metadata announces {announced} frames but {n} pages are readable")
+    if problems:
+        raise ValueError(
+            f"{path}: truncated TIFF (cut short, e.g. by an interrupted copy): the file has "
+            f"{size} bytes and {'; '.join(problems)}. Copy the recording again."
+        )
+    return n
+
+
 class TiffStack(VideoSource):
-    """A multi-page TIFF, one page per frame."""
+    """A multi-page TIFF, one page per frame; a truncated file is refused
+    (:func:`check_tiff_complete`)."""
 
     kind = "tiff"
 
     def __init__(self, path: Path):
         self.path = Path(path)
+        log, logger = _TiffLog(), logging.getLogger("tifffile")
+        logger.addHandler(log)
         try:
             with tifffile.TiffFile(self.path) as tif:
-                self.count = len(tif.pages)
+                self.count = check_tiff_complete(tif, self.path)
                 first = tif.pages[0].asarray()
-        except (tifffile.TiffFileError, ValueError, IndexError) as e:
-            raise ValueError(f"{self.path}: not a readable TIFF ({e})") from e
+        except (tifffile.TiffFileError, IndexError) as e:
+            hint = f"; tifffile: {'; '.join(log.messages)}" if log.messages else ""
+            raise ValueError(f"{self.path}: not a readable TIFF ({e}{hint})") from e
+        finally:
+            logger.removeHandler(log)
         first = _to_gray(first, str(self.path), rgb=True)
         self.shape = first.shape
         self.bit_depth = _bit_depth(first.dtype)

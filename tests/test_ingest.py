@@ -228,3 +228,84 @@ def test_cli_missing_calibration_names_session_and_rig(session, tmp_path, capsys
     assert main(base + ["--rig", "rig01"]) == 2
     err = capsys.readouterr().err
     assert "session s11: calibration of rig rig01 not found" in err and "cameras.json" in err
+
+
+def _cut(path, keep: float):
+    """A copy of ``path`` holding only its first ``keep`` fraction of bytes (as an
+    interrupted copy leaves it), beside it with the same suffix."""
+    data = path.read_bytes()
+    out = path.with_name(f"{path.stem}_cut{path.suffix}")
+    out.write_bytes(data[: int(len(data) * keep)])
+    return out
+
+
+def test_lzw_16bit_multipage_tiff_ingests_like_uncompressed(session, tmp_path):
+    _, cams, src = session
+    lzw = {}
+    for n in cams:
+        frames16 = tifffile.imread(src[n]["tif"])
+        lzw[n] = tmp_path / f"{n}_lzw.tif"
+        tifffile.imwrite(lzw[n], frames16, compression="lzw")  # LZW needs imagecodecs
+        with tifffile.TiffFile(lzw[n]) as tif:
+            assert tif.pages[0].compression == tifffile.COMPRESSION.LZW
+            assert len(tif.pages) == 8 and tif.pages[0].dtype == np.uint16
+    kw = {"frames": "1:7:2", "scale": 0.5}
+    ingest_session("s13", cams, lzw, 100.0, out=tmp_path / "lzw", **kw)
+    ingest_session("s13", cams, {n: src[n]["tif"] for n in cams}, 100.0, out=tmp_path / "raw", **kw)
+    for n in cams:
+        np.testing.assert_array_equal(
+            load_frames(tmp_path / "lzw", n), load_frames(tmp_path / "raw", n)
+        )
+
+
+@pytest.mark.parametrize("compression", [None, "lzw"])
+@pytest.mark.parametrize("both", [True, False])
+def test_truncated_tiff_is_a_clear_error(session, tmp_path, compression, both):
+    """A multi-page TIFF cut short used to read as one frame (and the run went on)."""
+    _, cams, src = session
+    videos = {}
+    for n in cams:
+        full = tmp_path / f"{n}.tif"
+        tifffile.imwrite(full, tifffile.imread(src[n]["tif"]), compression=compression)
+        videos[n] = _cut(full, 0.6) if (both or n == "cam1") else full
+    with pytest.raises(ValueError) as e:
+        ingest_session("s14", cams, videos, 100.0, out=tmp_path / "o")
+    msg = str(e.value)
+    assert "session s14" in msg and "truncated" in msg
+    assert "camera cam0" in msg if both else "camera cam1" in msg
+    assert str(videos["cam0"] if both else videos["cam1"]) in msg
+    assert not (tmp_path / "o" / "meta.json").exists()
+
+
+def test_tiff_shorter_than_the_other_camera_says_it_may_be_truncated(session, tmp_path):
+    """A file cut exactly at a page boundary looks whole: the count gives it away."""
+    _, cams, src = session
+    short = tmp_path / "short.tif"
+    tifffile.imwrite(short, tifffile.imread(src["cam1"]["tif"])[:5], metadata=None)
+    with pytest.raises(ValueError) as e:
+        ingest_session(
+            "s15", cams, {"cam0": src["cam0"]["tif"], "cam1": short}, 100.0, out=tmp_path / "o"
+        )
+    msg = str(e.value)
+    assert "session s15" in msg and f"camera cam1 {short} may be truncated" in msg
+
+
+@pytest.mark.parametrize("fmt", ["mraw12", "mraw16", "cine"])
+def test_truncated_lab_recording_is_a_clear_error(session, tmp_path, fmt):
+    from surfphase.labformats import write_cine, write_mraw
+
+    _, cams, _ = session
+    videos = {}
+    for k, n in enumerate(cams):
+        frames = _sequence(seed=k).astype(np.uint16) * 16  # 12 bits
+        if fmt == "cine":
+            videos[n] = write_cine(tmp_path / f"{n}.cine", frames, 12, 100)
+        else:
+            videos[n] = write_mraw(tmp_path / f"{n}.cih", frames, int(fmt[4:]), 100.0)
+    data = videos["cam1"] if fmt == "cine" else videos["cam1"].with_suffix(".mraw")
+    data.write_bytes(data.read_bytes()[: int(data.stat().st_size * 0.7)])
+    with pytest.raises(ValueError) as e:
+        ingest_session("s16", cams, videos, 100.0, out=tmp_path / "o")
+    msg = str(e.value)
+    assert "session s16" in msg and "camera cam1" in msg and str(data) in msg
+    assert "truncated" in msg

@@ -29,8 +29,20 @@ def frames(n: int, h: int, w: int, bits: int) -> np.ndarray:
 # --- writers for what pyMRAW cannot write -----------------------------------------------
 
 
-def write_cih(path: Path, n: int, h: int, w: int, color_bit: int, effective: int, side: str, fps):
+def write_cih(
+    path: Path,
+    n: int,
+    h: int,
+    w: int,
+    color_bit: int,
+    effective: int,
+    side: str,
+    fps,
+    color_type: str = "Mono",
+    camera: str = "FASTCAM TEST",
+):
     lines = [
+        f"Camera Type : {camera}",
         "#Camera Information Header",
         f"Record Rate(fps) : {fps}",
         "Shutter Speed(s) : 1/10000",
@@ -39,7 +51,7 @@ def write_cih(path: Path, n: int, h: int, w: int, color_bit: int, effective: int
         "Start Frame : 0",
         f"Image Width : {w}",
         f"Image Height : {h}",
-        "Color Type : Mono",
+        f"Color Type : {color_type}",
         f"Color Bit : {color_bit}",
         "File Format : MRaw",
         f"EffectiveBit Depth : {effective}",
@@ -61,18 +73,27 @@ def pack12(images: np.ndarray) -> bytes:
     return out.tobytes()
 
 
-def write_cihx(path: Path, n: int, h: int, w: int, bits: int, fps: float):
+def write_cihx(
+    path: Path,
+    n: int,
+    h: int,
+    w: int,
+    bits: int,
+    fps: float,
+    color_type: str = "Mono",
+    device: str = "FASTCAM TEST",
+):
     xml = f"""<?xml version="1.0" encoding="UTF-8" ?>
 <cih>
 <fileInfo><date>2026/11/22</date></fileInfo>
 <basicInfo><comment>bubble test</comment></basicInfo>
-<deviceInfo><deviceName>FASTCAM TEST</deviceName></deviceInfo>
+<deviceInfo><deviceName>{device}</deviceName></deviceInfo>
 <recordInfo><recordRate>{fps}</recordRate><shutterSpeed>0.0001</shutterSpeed></recordInfo>
 <frameInfo><totalFrame>{n}</totalFrame><recordedFrame>{n}</recordedFrame></frameInfo>
 <imageDataInfo>
 <resolution><width>{w}</width><height>{h}</height></resolution>
 <effectiveBit><depth>{bits}</depth><side>Lower</side></effectiveBit>
-<colorInfo><type>Mono</type><bit>{bits}</bit></colorInfo>
+<colorInfo><type>{color_type}</type><bit>{bits}</bit></colorInfo>
 </imageDataInfo>
 <imageFileInfo><fileFormat>MRaw</fileFormat></imageFileInfo>
 </cih>
@@ -84,10 +105,19 @@ def write_cihx(path: Path, n: int, h: int, w: int, bits: int, fps: float):
 SETUP_SIZE = 12432  # size of the SETUP structure in current CINE files
 
 
-def write_cine(path: Path, images: np.ndarray, bit_count: int, real_bpp: int, fps: int):
+def write_cine(
+    path: Path,
+    images: np.ndarray,
+    bit_count: int,
+    real_bpp: int,
+    fps: int,
+    compression: int = 0,
+    cfa: int = 0,
+):
     """A minimal uncompressed CINE file: headers, SETUP, offset table, bottom-up images.
 
     ``images``: (n, H, W) mono or (n, H, W, 3) BGR. Rows are padded to 4 bytes.
+    ``compression`` 2 with ``cfa`` 1-4: an uninterpolated colour (Bayer) recording.
     """
     n, h, w = images.shape[:3]
     ch = 3 if images.ndim == 4 else 1
@@ -103,7 +133,7 @@ def write_cine(path: Path, images: np.ndarray, bit_count: int, real_bpp: int, fp
         "<2sHHHiIiIIIIII",
         b"CI",
         44,
-        0,  # compression: grey
+        compression,  # 0: grey or interpolated colour, 2: uninterpolated (Bayer)
         1,  # version
         0,
         n,
@@ -120,6 +150,7 @@ def write_cine(path: Path, images: np.ndarray, bit_count: int, real_bpp: int, fp
     struct.pack_into("<H", setup, 0, min(fps, 65535))  # FrameRate16
     struct.pack_into("<H", setup, 142, SETUP_SIZE & 0xFFFF)  # Length
     struct.pack_into("<I", setup, 768, fps)  # FrameRate
+    struct.pack_into("<I", setup, 808, cfa)  # CFA: 0 grey sensor, 1-4 Bayer patterns
     struct.pack_into("<I", setup, 896, real_bpp)  # RealBPP
     struct.pack_into("<I", setup, 5732, 0)  # BlackLevel
     struct.pack_into("<I", setup, 5736, 2**real_bpp - 1)  # WhiteLevel
@@ -251,8 +282,8 @@ def test_cine_errors(tmp_path):
     write_cine(tmp_path / "t.cine", data, 8, 8, fps=10)
     blob = (tmp_path / "t.cine").read_bytes()
     (tmp_path / "t.cine").write_bytes(blob[:-5])
-    with pytest.raises(ValueError, match="t.cine: image 1 truncated"):
-        list(open_lab_video(tmp_path / "t.cine").read())
+    with pytest.raises(ValueError, match="t.cine: truncated recording.* image 1 of the 2"):
+        open_lab_video(tmp_path / "t.cine")  # found on opening, not at the last frame
     with pytest.raises(ValueError, match="not a lab format"):
         open_lab_video(tmp_path / "x.avi")
 
@@ -287,3 +318,103 @@ def test_write_cine(tmp_path, bits, w):
 
 def test_suffixes():
     assert LAB_SUFFIXES == {".cih", ".cihx", ".mraw", ".cine"}
+
+
+# --- colour (Bayer) sensors ---------------------------------------------------------------
+
+PHASES = {"RGGB": "COLOR_BayerRGGB2RGB", "BGGR": "COLOR_BayerBGGR2RGB"}
+PHASES |= {"GRBG": "COLOR_BayerGRBG2RGB", "GBRG": "COLOR_BayerGBRG2RGB"}
+
+
+def colour_scene(n: int = 2, h: int = 24, w: int = 32) -> np.ndarray:
+    """(n, h, w, 3) RGB, 12-bit: flat 8×8 patches of distinct colours, changing per frame."""
+    rng = np.random.default_rng(5)
+    patches = rng.integers(0, 4096, size=(n, h // 8, w // 8, 3))
+    return np.repeat(np.repeat(patches, 8, axis=1), 8, axis=2).astype(np.uint16)
+
+
+def mosaic(rgb: np.ndarray, phase: str) -> np.ndarray:
+    """(..., H, W, 3) RGB → (..., H, W) Bayer mosaic whose 2×2 cell reads ``phase``
+    (row-major, as OpenCV's ``COLOR_Bayer<phase>2RGB`` names it)."""
+    out = np.empty(rgb.shape[:-1], rgb.dtype)
+    for k, letter in enumerate(phase):
+        dy, dx = divmod(k, 2)
+        out[..., dy::2, dx::2] = rgb[..., dy::2, dx::2, "RGB".index(letter)]
+    return out
+
+
+def patch_interior(h: int, w: int) -> np.ndarray:
+    """(h, w) bool: pixels whose 3×3 neighbourhood lies in their own 8×8 patch."""
+    y, x = np.mgrid[0:h, 0:w]
+    return (y % 8 >= 1) & (y % 8 <= 6) & (x % 8 >= 1) & (x % 8 <= 6)
+
+
+def check_grey_of_bayer(got: np.ndarray, rgb: np.ndarray, mos: np.ndarray, phase: str):
+    """Flat colours come out (R + 2G + B)/4, and agree with OpenCV's own demosaic."""
+    import cv2
+
+    inside = patch_interior(*got.shape[1:])
+    truth = (rgb[..., 0] + 2.0 * rgb[..., 1] + rgb[..., 2]) / 4
+    assert np.abs(got - truth)[:, inside].max() <= 0.5
+    for g, m in zip(got, mos, strict=True):
+        demosaiced = cv2.cvtColor(m, getattr(cv2, PHASES[phase])).astype(float)
+        cv_grey = (demosaiced[..., 0] + 2 * demosaiced[..., 1] + demosaiced[..., 2]) / 4
+        assert np.abs(g - cv_grey)[inside].max() <= 1.0
+    # Read as grey without conversion, the mosaic is a checkerboard, far from this.
+    assert np.abs(mos.astype(float) - truth)[:, inside].max() > 500
+
+
+@pytest.mark.parametrize("phase", sorted(PHASES))
+def test_cine_bayer_is_converted_to_grey(tmp_path, phase):
+    rgb = colour_scene()
+    mos = mosaic(rgb, phase)
+    write_cine(tmp_path / "c.cine", mos, 16, 12, fps=5000, compression=2, cfa=3)
+    v = open_lab_video(tmp_path / "c.cine")
+    assert (v.shape, v.bit_depth) == ((24, 32), 12) and v.header["colour"].startswith("bayer")
+    got = np.stack(list(v.read()))
+    assert got.dtype == np.uint16
+    check_grey_of_bayer(got, rgb, mos, phase)
+
+
+@pytest.mark.parametrize(
+    ("header", "colour", "device"),
+    [
+        ("cih", "Color", "FASTCAM TEST"),
+        ("cihx", "Raw", "FASTCAM Mini AX200 type 900K-C-16GB"),
+    ],
+)
+@pytest.mark.parametrize("phase", ["RGGB", "GBRG"])
+def test_mraw_bayer_is_converted_to_grey(tmp_path, header, colour, device, phase):
+    rgb = colour_scene()
+    mos = mosaic(rgb, phase)
+    (tmp_path / "c.mraw").write_bytes(pack12(mos))
+    if header == "cih":
+        write_cih(tmp_path / "c.cih", 2, 24, 32, 12, 12, "Lower", 5000, colour, device)
+    else:
+        write_cihx(tmp_path / "c.cihx", 2, 24, 32, 12, 5000.0, colour, device)
+    v = open_lab_video(tmp_path / f"c.{header}")
+    assert v.header["colour"].startswith("bayer")
+    check_grey_of_bayer(np.stack(list(v.read())), rgb, mos, phase)
+
+
+def test_mono_raw_is_not_converted_and_unknown_sensor_warns(tmp_path):
+    import warnings
+
+    data = frames(2, 8, 8, 12)
+    (tmp_path / "m.mraw").write_bytes(pack12(data))
+    # Photron's "Raw" from a monochrome model (as in real files): read as is, no warning.
+    write_cihx(tmp_path / "m.cihx", 2, 8, 8, 12, 100.0, "Raw", "FASTCAM Nova S16 type 1100K-M-64GB")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        v = open_lab_video(tmp_path / "m.cihx")
+    np.testing.assert_array_equal(np.stack(list(v.read())), data)
+    (tmp_path / "m.cihx").unlink()
+    write_cih(tmp_path / "m.cih", 2, 8, 8, 12, 12, "Lower", 100, "Raw", "FASTCAM ?")
+    with pytest.warns(UserWarning, match=r"m\.cih: .*monochrome or colour"):
+        v = open_lab_video(tmp_path / "m.cih")
+    np.testing.assert_array_equal(np.stack(list(v.read())), data)
+    # A colour CFA with 1-channel images said to be interpolated: grey, with a warning.
+    write_cine(tmp_path / "c.cine", data, 16, 12, fps=100, compression=0, cfa=2)
+    with pytest.warns(UserWarning, match=r"c\.cine: .*colour sensor"):
+        v = open_lab_video(tmp_path / "c.cine")
+    np.testing.assert_array_equal(np.stack(list(v.read())), data)

@@ -151,6 +151,80 @@ def _write_fit(tmp_path, frames: int = 2):
     return fit, ingest
 
 
+def _read_vtp(path) -> dict:
+    """A .vtp read by VTK's own XML reader (an independent reader of our writer)."""
+    from vtkmodules.util.numpy_support import vtk_to_numpy
+    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader
+
+    reader = vtkXMLPolyDataReader()
+    reader.SetFileName(str(path))
+    reader.Update()
+    assert reader.GetErrorCode() == 0, path
+    poly = reader.GetOutput()
+    polys = poly.GetPolys()
+    offsets = vtk_to_numpy(polys.GetOffsetsArray())
+    assert (np.diff(offsets) == 3).all()  # triangles only
+    n = poly.GetNumberOfPoints()
+    pd, fd = poly.GetPointData(), poly.GetFieldData()
+    return {
+        "points": vtk_to_numpy(poly.GetPoints().GetData()) if n else np.zeros((0, 3)),
+        "polys": vtk_to_numpy(polys.GetConnectivityArray()).reshape(-1, 3),
+        "velocity": vtk_to_numpy(pd.GetArray("velocity")).reshape(-1, 3),
+        "speed": vtk_to_numpy(pd.GetArray("speed")),
+        "active": (pd.GetScalars().GetName(), pd.GetVectors().GetName()),
+        "frame": int(vtk_to_numpy(fd.GetArray("frame"))[0]),
+        "time_s": float(vtk_to_numpy(fd.GetArray("TimeValue"))[0]),
+    }
+
+
+def _read_pvd(path) -> list[tuple[float, str]]:
+    """(timestep, file) of a .pvd collection, parsed by VTK's XML parser (the python
+    ``vtk`` package has no vtkPVDReader: that is ParaView's, built on this parser); each
+    file it names must exist."""
+    from vtkmodules.vtkIOXMLParser import vtkXMLDataParser
+
+    parser = vtkXMLDataParser()
+    parser.SetFileName(str(path))
+    assert parser.Parse() == 1, path
+    root = parser.GetRootElement()
+    assert (root.GetName(), root.GetAttribute("type")) == ("VTKFile", "Collection")
+    coll = root.GetNestedElement(0)
+    assert coll.GetName() == "Collection"
+    out = []
+    for k in range(coll.GetNumberOfNestedElements()):
+        ds = coll.GetNestedElement(k)
+        assert ds.GetName() == "DataSet" and (path.parent / ds.GetAttribute("file")).is_file()
+        out.append((float(ds.GetAttribute("timestep")), ds.GetAttribute("file")))
+    return out
+
+
+def test_vtp_writer_read_back_by_vtk(tmp_path):
+    from surfphase.mesh.vtkxml import write_polydata, write_pvd
+
+    rng = np.random.default_rng(3)
+    verts = rng.normal(0.0, 2e-3, (50, 3))
+    faces = rng.integers(0, 50, (80, 3))
+    vel = rng.normal(0.0, 0.3, (50, 3))
+    write_polydata(tmp_path / "a.vtp", verts, faces, vel, frame=12, time_s=12 / 3000)
+    got = _read_vtp(tmp_path / "a.vtp")
+    np.testing.assert_array_equal(got["points"], verts.astype(np.float32))
+    np.testing.assert_array_equal(got["polys"], faces)
+    np.testing.assert_array_equal(got["velocity"], vel.astype(np.float32))
+    np.testing.assert_allclose(got["speed"], np.linalg.norm(vel, axis=1), rtol=1e-6)
+    assert got["active"] == ("speed", "velocity")
+    assert (got["frame"], got["time_s"]) == (12, 12 / 3000)
+    # A frame without a mesh (no alive surfels) is still a valid, empty file.
+    write_polydata(
+        tmp_path / "b.vtp", np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), 13, 0.1
+    )
+    empty = _read_vtp(tmp_path / "b.vtp")
+    assert len(empty["points"]) == 0 and len(empty["polys"]) == 0 and empty["frame"] == 13
+    write_pvd(tmp_path / "s.pvd", [(12 / 3000, "a.vtp"), (0.1, "b.vtp")])
+    assert _read_pvd(tmp_path / "s.pvd") == [(12 / 3000, "a.vtp"), (0.1, "b.vtp")]
+    with pytest.raises(ValueError, match="face indices"):
+        write_polydata(tmp_path / "c.vtp", verts, faces + 50, vel, 0, 0.0)
+
+
 def test_cli_writes_ply_per_frame_with_velocity(tmp_path):
     import pymeshlab
 
@@ -194,6 +268,17 @@ def test_cli_writes_ply_per_frame_with_velocity(tmp_path):
         m = ms.current_mesh()
         assert m.vertex_number() == r["vertices"] and m.face_number() == r["faces"]
         np.testing.assert_allclose(m.vertex_matrix(), verts, atol=1e-9)
+        # The ParaView copy, read by VTK's own reader: the same mesh, with the velocity.
+        poly = _read_vtp(out / "vtk" / f"{r['frame']:06d}.vtp")
+        np.testing.assert_array_equal(poly["points"], verts)
+        np.testing.assert_array_equal(poly["polys"], faces)
+        vel = np.stack([props["vx"], props["vy"], props["vz"]], 1)
+        np.testing.assert_array_equal(poly["velocity"], vel)
+        np.testing.assert_allclose(poly["speed"], np.linalg.norm(vel, axis=1), rtol=1e-6)
+        assert poly["time_s"] == r["time_s"] and poly["frame"] == r["frame"]
+    assert summary["pvd"] == "sphere.pvd"
+    series = _read_pvd(out / "sphere.pvd")
+    assert series == [(k / 1500, f"vtk/{f:06d}.vtp") for k, f in enumerate((3, 4))]
 
 
 def test_bad_inputs_name_the_file(tmp_path):

@@ -88,3 +88,28 @@ def test_errors(tmp_path):
     (tmp_path / "bad.mp4").write_bytes(b"not a video")
     with pytest.raises(ValueError, match="bad.mp4"):
         open_video(tmp_path / "bad.mp4")
+
+
+def test_lzw_multipage_tiff_16bit_equals_tifffile(tmp_path):
+    rng = np.random.default_rng(1)
+    frames16 = rng.integers(0, 65536, size=(7, 30, 41), dtype=np.uint16)
+    path = tmp_path / "lzw.tif"
+    tifffile.imwrite(path, frames16, compression="lzw", predictor=True)
+    ref = tifffile.imread(path)  # tifffile's own decoder (imagecodecs)
+    np.testing.assert_array_equal(ref, frames16)
+    src = open_video(path)
+    assert (src.kind, src.count, src.shape, src.bit_depth) == ("tiff", 7, (30, 41), 16)
+    np.testing.assert_array_equal(np.stack(list(src.read([6, 0, 3]))), ref[[6, 0, 3]])
+
+
+@pytest.mark.parametrize("kw", [{}, {"compression": "lzw"}, {"imagej": True}, {"metadata": None}])
+@pytest.mark.parametrize("keep", [0.3, 0.6, 0.97])
+def test_truncated_multipage_tiff_is_refused(tmp_path, kw, keep):
+    frames16 = _frames(10).astype(np.uint16) * 257
+    full = tmp_path / "full.tif"
+    tifffile.imwrite(full, frames16, **kw)
+    assert open_video(full).count == 10
+    cut = tmp_path / "cut.tif"
+    cut.write_bytes(full.read_bytes()[: int(full.stat().st_size * keep)])
+    with pytest.raises(ValueError, match=r"cut\.tif: truncated TIFF"):
+        open_video(cut)

@@ -3,8 +3,13 @@
 ``OUT/<frame:06d>.ply`` — binary PLY, vertex ``x y z`` (float32, metres, lab frame),
 ``vx vy vz`` (float32, m/s: the velocity of the nearest alive surfel) and ``red green
 blue`` (uchar: viridis over [0, ``speed_max``] m/s); triangle faces.
-``OUT/mesh.json`` — the parameters used and, per frame, ``frame``, ``vertices``,
-``faces``, ``components``, ``watertight``, ``seconds``.
+``OUT/vtk/<frame:06d>.vtp`` — the same mesh as VTK XML PolyData for ParaView (VTK's
+PLY reader drops ``vx vy vz``): point arrays ``velocity`` (3 components, m/s) and
+``speed`` (m/s), field data ``frame`` and ``TimeValue`` (s); see :mod:`surfphase.mesh.vtkxml`.
+``OUT/<session>.pvd`` (``OUT/mesh.pvd`` when the session is unknown) — the frames as one
+ParaView time series, each at its time in seconds (``time_s`` of ``surfels.npz``).
+``OUT/mesh.json`` — the parameters used, ``pvd`` (the series' file name) and, per frame,
+``frame``, ``time_s``, ``vertices``, ``faces``, ``components``, ``watertight``, ``seconds``.
 
 Method: the frame's alive surfels are rendered (median depth where alpha > 0.5) into the
 input cameras and ``n_orbit`` orbit views about the surfels' mean (30° steps about the
@@ -42,6 +47,7 @@ from surfphase.io import atomic_path, atomic_write_json, part_dir, replace_dir
 from surfphase.mesh.cleanup import clean_mesh, mesh_stats
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
+from surfphase.mesh.vtkxml import write_polydata, write_pvd
 from surfphase.mesh.windows import window_positions
 
 DEFAULTS: dict = {
@@ -224,6 +230,8 @@ def _open_session(fit_dir: Path, ingest_dir: Path, params: dict | None, device: 
     for t in picks:
         if not 0 <= t < n_frames:
             raise ValueError(f"{fit_dir}: frame position {t} outside 0..{n_frames - 1}")
+    if "time_s" not in surfels or np.shape(surfels["time_s"]) != (n_frames,):
+        raise ValueError(f"{surfels_path}: no time_s per frame (seconds), needed for the .pvd")
     key = mesh_key(surfels_path, cam_path, p, dev)
     return _Session(surfels, inputs, session, p, dev, key, picks)
 
@@ -300,6 +308,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
         rec = {
             "key": np.array(s.key),
             "frame": np.int64(frame),
+            "time_s": np.float64(surf["time_s"][t]),
             "position": np.int64(t),
             "verts": np.asarray(verts, np.float64),
             "faces": np.asarray(faces, np.int64).reshape(-1, 3),
@@ -318,7 +327,8 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
 
 
 def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict) -> dict:
-    """Write ``OUT/<frame>.ply`` and ``OUT/mesh.json`` of ``records``, whole or not at all."""
+    """Write ``OUT/<frame>.ply``, ``OUT/vtk/<frame>.vtp``, ``OUT/<session>.pvd`` and
+    ``OUT/mesh.json`` of ``records``, whole or not at all."""
     if p["speed_max"] == "session":
         speeds = [
             np.linalg.norm(r["velocity"], axis=1).max() for r in records if len(r["velocity"])
@@ -327,24 +337,32 @@ def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict)
     else:
         vmax = float(p["speed_max"])
     tmp = part_dir(out)
+    pvd = f"{session or 'mesh'}.pvd"
     try:
-        rows = []
+        rows, series = [], []
+        (tmp / "vtk").mkdir()
         for r in records:
             frame, verts, faces, vel = int(r["frame"]), r["verts"], r["faces"], r["velocity"]
+            time_s = float(r["time_s"])
             colors = speed_colors(np.linalg.norm(vel, axis=1), vmax)
             write_mesh_ply(tmp / f"{frame:06d}.ply", verts, faces, vel, colors)
+            write_polydata(tmp / "vtk" / f"{frame:06d}.vtp", verts, faces, vel, frame, time_s)
+            series.append((time_s, f"vtk/{frame:06d}.vtp"))
             rows.append(
                 {
                     "frame": frame,
+                    "time_s": time_s,
                     "vertices": len(verts),
                     "faces": len(faces),
                     **mesh_stats(faces, len(verts)),
                     "seconds": float(r["seconds"]),
                 }
             )
+        write_pvd(tmp / pvd, series)
         summary = {
             "session": session,
-            "units": "metres, m/s",
+            "units": "metres, m/s, seconds",
+            "pvd": pvd,
             "speed_max": vmax,
             "device": device,
             "params": p,
