@@ -1,6 +1,6 @@
 """Pinhole cameras with OpenCV distortion, and the ``cameras.json`` format.
 
-Conventions (DESIGN.md):
+Conventions (docs/conventions.md):
 
 * world points in metres, lab frame: +y up (against gravity), heated plate at y = 0;
 * ``x_cam = R @ x_world + t``; the camera looks along its +z, +x right, +y down;

@@ -33,7 +33,7 @@ import yaml
 
 from surfphase.io import atomic_write_text
 
-# Stages in the order of DESIGN.md; rules not listed are shown after them.
+# Stages in the order of docs/method.md §1; rules not listed are shown after them.
 STAGE_ORDER = [
     "calibrate",
     "ingest",

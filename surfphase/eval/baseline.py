@@ -1,7 +1,7 @@
 """The classical two-view baseline experimentalists use: triangulate each bubble's 2D
 mask centroid from the views that see it, then difference the 3D centroids over time.
 
-Pixels follow DESIGN.md (origin at the centre of the top-left pixel; ``u`` = column,
+Pixels per docs/conventions.md §4 (origin at the centre of the top-left pixel; ``u`` = column,
 ``v`` = row) and belong to the *undistorted* ingest frames, so the ingest cameras
 (zero distortion) triangulate them directly. Velocities: central differences
 ``(c[k+1] − c[k−1]) / (t[k+1] − t[k−1])`` inside each bubble's run of consecutive

@@ -1,4 +1,4 @@
-"""Stage-1 fit (DESIGN.md §3–4): SDF surfels, bubble-guided tracking, metric velocities.
+"""Stage-1 fit (docs/method.md §5): SDF surfels, bubble-guided tracking, metric velocities.
 
 * :mod:`surfphase.fit.model` — :class:`~surfphase.fit.model.SurfelModel` and
   :func:`~surfphase.fit.model.sdf_to_opacity` (``o = 4e^{−γf}/(1+e^{−γf})²``);
@@ -15,7 +15,7 @@
   per-frame loop, and :data:`~surfphase.fit.stage.DEFAULTS` (every hyperparameter);
 * :mod:`surfphase.fit.stage2` — :func:`~surfphase.fit.stage2.run_fit_stage2`, the same
   loop restarted from the stage-1 surfels with the refined orbit views as weighted
-  extra supervision (DESIGN.md §6); :mod:`surfphase.fit.bench_stage2` times its steps;
+  extra supervision (docs/method.md §9); :mod:`surfphase.fit.bench_stage2` times its steps;
 * :mod:`surfphase.fit.outputs` — ``surfels.npz`` (format table), ``bubbles.csv``,
   ``curves.csv``, ``summary.json``, ``renders/``;
 * :mod:`surfphase.fit.bench` — ``surfphase bench fit`` (the only module that imports

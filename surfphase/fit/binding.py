@@ -1,4 +1,4 @@
-"""Bubble guidance (DESIGN.md §4): bind surfels to bubbles, bubble centroids and
+"""Bubble guidance (docs/method.md §5.4): bind surfels to bubbles, bubble centroids and
 velocities, and advection of each bubble's surfels to initialise the next frame.
 
 Bubble ids are those of the masks: ``-1`` background (a surfel bound to no bubble),

@@ -1,4 +1,4 @@
-"""Losses of the stage-1 fit (DESIGN.md §3).
+"""Losses of the stage-1 fit (docs/method.md §5.2).
 
 ``λ_app · Σ_c (L1 + D-SSIM) + λ_geo · (L_normal + L_γ + L_proj)``. Images are
 (C, H, W, D) tensors in [0, 1]; depths in metres.

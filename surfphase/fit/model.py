@@ -4,7 +4,7 @@ Every surfel ``i`` has a centre ``μ_i`` (metres, lab frame), two tangent scales
 ``s_i = exp(log_scales_i)`` (metres, standard deviations along the first two columns
 of its rotation), a rotation quaternion ``q_i`` (w, x, y, z; normalised when used), a
 colour ``c_i`` (D channels in [0, 1]) and a signed-distance value ``f_i``. Opacity is
-not free (DESIGN.md §3): ``o_i = 4 e^{−γ f_i} / (1 + e^{−γ f_i})²`` with one global
+not free (docs/method.md §5.1): ``o_i = 4 e^{−γ f_i} / (1 + e^{−γ f_i})²`` with one global
 sharpness ``γ``.
 
 Units of ``f`` and ``γ``: the optimised ``f`` is expressed in units of the scene extent

@@ -1,4 +1,4 @@
-"""Photometric refinement of the bubble advection (DESIGN.md §4, guidance).
+"""Photometric refinement of the bubble advection (docs/method.md §5.4, guidance).
 
 The advection moves each bubble's surfels rigidly by the bubble's velocity predicted
 from the two previous centroids. The prediction is off whenever a bubble accelerates, has

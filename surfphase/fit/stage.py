@@ -1,5 +1,5 @@
 """The stage-1 fit of one session: sequential per-frame optimisation of SDF surfels with
-bubble-guided tracking, checkpointed after every frame (DESIGN.md §3–4).
+bubble-guided tracking, checkpointed after every frame (docs/method.md §5).
 
 Per frame ``t`` (in order):
 
@@ -132,7 +132,7 @@ DEFAULTS: dict = {
     "register_silhouette": 3.0,  # weight of |α − masks| in that fit (0: photometric only)
     "register_silhouette_all": False,  # True: every bubble; False: merged bubbles only
     "register_silhouette_frames": 3,  # ... for this many frames after their merge
-    # The heated surface (DESIGN.md: lab y = 0) is solid plate: after every step the
+    # The heated surface (y = 0, docs/conventions.md §1) is solid plate: after every step the
     # surfel centres are put back on or above it (a projected gradient step); None = off.
     "floor_y": 0.0,  # metres, lab frame
     # Two views leave a bubble's extent along their bisector (the mean viewing direction)

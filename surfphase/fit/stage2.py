@@ -1,4 +1,4 @@
-"""The stage-2 fit of one session (DESIGN.md §6): the stage-1 loop again, restarted from
+"""The stage-2 fit of one session (docs/method.md §9): the stage-1 loop again, restarted from
 the stage-1 surfels of the first frame, with the refined orbit views as extra supervision.
 
 Inputs: the session's ingest and mask folders (as stage 1), the stage-1 fit

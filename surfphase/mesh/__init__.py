@@ -1,6 +1,6 @@
 """Meshes per frame: TSDF fusion of rendered surfel depth, marching cubes, cleanup, PLY.
 
-The stage never imports the command line or Snakemake (DESIGN.md). Names are imported
+The stage never imports the command line or Snakemake (docs/method.md §1.1). Names are imported
 on first use, so that the workflow can read :mod:`surfphase.mesh.windows` while it
 builds the DAG without importing torch.
 """

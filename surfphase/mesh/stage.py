@@ -67,7 +67,7 @@ DEFAULTS: dict = {
     "smooth_steps": 5,  # Taubin steps
     "max_hole_edges": 30,
     "speed_max": 0.4,  # m/s, top of the colour map; "session" = max vertex speed seen
-    # The heated surface (DESIGN.md: lab y = 0): the volume below it is solid plate, so
+    # The heated surface (y = 0, docs/conventions.md §1): the volume below it is solid plate, so
     # the fused volume is cut there and bubbles sitting on it get a flat base; None = off.
     "floor_y": 0.0,  # metres, lab frame
     "frames": None,  # positions (0-based) in surfels.npz; None = all

@@ -1,6 +1,6 @@
 """Differentiable 2D Gaussian surfel renderer: surfels and cameras in, images out.
 
-The renderer knows nothing of bubbles, SDF values or fits (DESIGN.md).
+The renderer knows nothing of bubbles, SDF values or fits (docs/method.md §1.1).
 """
 
 from surfphase.render.rasterize import camera_tensors, depth_normals, rasterize_surfels

@@ -13,7 +13,7 @@ Semantics follow 2D Gaussian Splatting (Huang et al. 2024):
   blended front to back in order of their centres' depth; a pixel stops as soon as a
   surfel would bring its transmittance under ``1e-4`` (that surfel is not blended).
 
-Pixels follow DESIGN.md: pixel ``(u, v)`` has its centre at integer coordinates.
+Pixels follow docs/conventions.md §4: pixel ``(u, v)`` has its centre at integer coordinates.
 Differences from 2DGS's CUDA rasterizer, on purpose: its footprint cut-off depends on
 16×16 tiles, here the support is exactly ``ρ ≤ 9`` so results do not depend on tiling;
 the low-pass term is centred on the projected surfel centre (2DGS: the centre of the

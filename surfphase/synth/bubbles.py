@@ -1,6 +1,6 @@
 """Synthetic pool-boiling scene: bubble life cycles as one signed distance field.
 
-Units: metres, seconds, m/s. Lab frame (DESIGN.md): +y up, heated plate at y = 0.
+Units: metres, seconds, m/s. Lab frame (docs/conventions.md §1): +y up, heated plate at y = 0.
 Time ``t = 0`` is frame 0 of the clip; frame ``f`` is at ``t = f / fps``. The scene
 is simulated from :data:`WARMUP` seconds before frame 0 so the clip starts in a
 steady state (bubbles already spread over the rising column).

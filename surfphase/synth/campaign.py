@@ -1,4 +1,4 @@
-"""A whole synthetic campaign on disk, in the campaign format of DESIGN.md.
+"""A whole synthetic campaign on disk, in the campaign format of docs/campaign.md.
 
 Layout under ``out`` (paths in the TSVs are relative to the TSV's folder)::
 

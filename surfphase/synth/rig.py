@@ -1,6 +1,6 @@
 """The reference rig of the synthetic campaign: true cameras in the lab frame.
 
-Lab frame (DESIGN.md): +y up, heated plate at y = 0, x horizontal in cam0's image
+Lab frame (docs/conventions.md §1): +y up, heated plate at y = 0, x horizontal in cam0's image
 (cam0 sits on the +z axis looking towards −z, so image-right is lab +x).
 
 Cameras (native resolution ``native``, e.g. 512×512):

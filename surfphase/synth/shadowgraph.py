@@ -1,6 +1,6 @@
 """Backlit shadowgraph images of the synthetic scene, by sphere tracing in numpy.
 
-Independent of the reconstruction's renderer (DESIGN.md): rays come from the true
+Independent of the reconstruction's renderer (docs/method.md §1.1): rays come from the true
 cameras (``Camera.pixel_rays``, lens distortion included for raw input views),
 and are marched through the scene field of :mod:`surfphase.synth.scene`.
 
