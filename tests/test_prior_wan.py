@@ -164,3 +164,17 @@ def test_train_prior_command_with_wan(wan, tmp_path):
                  "--params-json", json.dumps(params)]) == 0  # fmt: skip
     names = {p.name for p in out.iterdir()}
     assert {"prior.json", "pytorch_lora_weights.safetensors", "samples.png", "train.json"} <= names
+
+
+def test_missing_wan_packages_name_the_extra(monkeypatch):
+    """Without diffusers/peft the backend says which packages and which extra to install."""
+    import importlib.util
+
+    from surfphase.prior import wan
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda m, *a: None if m in ("diffusers", "peft") else real(m)
+    )
+    with pytest.raises(wan.MissingExtraError, match=r"diffusers, peft.*surfphase\[wan\]"):
+        wan.WanPrior({"weights": "nowhere"})

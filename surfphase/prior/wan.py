@@ -102,6 +102,25 @@ def encode_captions(pipe, captions: list[str], max_sequence_length: int) -> torc
     return emb * mask[..., None].to(emb.dtype)
 
 
+WAN_PACKAGES = ("diffusers", "peft", "transformers", "accelerate")
+
+
+class MissingExtraError(ValueError):
+    """An optional dependency group (a pip extra) is not installed."""
+
+
+def require_wan_packages() -> None:
+    """Raise :class:`MissingExtraError` naming the extra when Wan's packages are missing."""
+    import importlib.util
+
+    missing = [m for m in WAN_PACKAGES if importlib.util.find_spec(m) is None]
+    if missing:
+        raise MissingExtraError(
+            f"prior: backend: wan needs the packages {', '.join(missing)}, which are not "
+            "installed: pip install 'surfphase[wan]' (or use prior: backend: embedded)"
+        )
+
+
 class WanPrior:
     """Wan 2.1 (diffusers) behind the :class:`~surfphase.prior.interface.VideoPrior` interface.
 
@@ -114,6 +133,7 @@ class WanPrior:
     backend = "wan"
 
     def __init__(self, params: dict | None = None, device="cpu", lora: Path | None = None):
+        require_wan_packages()
         from diffusers import WanVideoToVideoPipeline
 
         unknown = set(params or {}) - set(DEFAULT_PARAMS)
