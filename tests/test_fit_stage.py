@@ -29,11 +29,14 @@ def toy(tmp_path_factory):
     return make_toy_session(tmp_path_factory.mktemp("toy"), frames=4, size=40)
 
 
-def test_fit_reconstructs_and_tracks_the_rising_bubble(toy, tmp_path):
+def test_fit_reconstructs_and_tracks_the_rising_bubble(toy, tmp_path, capsys):
     torch.set_num_threads(2)
     ingest, masks = toy
     out = tmp_path / "fit"
     summary = run_fit(ingest, masks, out, SMALL, device="cpu")
+    log = [ln for ln in capsys.readouterr().out.splitlines() if ": frame " in ln]
+    assert log[0].startswith(f"session {summary['session']}: frame 1/{summary['frames']}")
+    assert "ETA" in log[0] and "elapsed" in log[-1]  # progress with an ETA per frame
     for name in ("surfels.npz", "bubbles.csv", "curves.csv", "summary.json"):
         assert (out / name).exists()
     assert len(list((out / "renders").glob("*.png"))) == 4

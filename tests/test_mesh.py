@@ -225,7 +225,7 @@ def test_vtp_writer_read_back_by_vtk(tmp_path):
         write_polydata(tmp_path / "c.vtp", verts, faces + 50, vel, 0, 0.0)
 
 
-def test_cli_writes_ply_per_frame_with_velocity(tmp_path):
+def test_cli_writes_ply_per_frame_with_velocity(tmp_path, capsys):
     import pymeshlab
 
     fit, ingest = _write_fit(tmp_path)
@@ -246,6 +246,8 @@ def test_cli_writes_ply_per_frame_with_velocity(tmp_path):
         ]
     )
     assert rc == 0
+    printed = capsys.readouterr().out
+    assert "mesh sphere: frames to do 1/2" in printed and "ETA" in printed  # progress
     summary = json.loads((out / "mesh.json").read_text())
     assert summary["session"] == "sphere"
     assert [r["frame"] for r in summary["frames"]] == [3, 4]

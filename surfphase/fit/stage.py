@@ -52,6 +52,7 @@ from surfphase.fit import binding, init, losses, register
 from surfphase.fit.densify import Densify2DGS, NoDensify, append_surfels
 from surfphase.fit.model import HALF_OPACITY_GF, SurfelModel, per_surfel
 from surfphase.io import atomic_path
+from surfphase.progress import Progress
 from surfphase.render.shading import monotone_raw
 
 #: Every hyperparameter of the fit, with its default (mirrored in config.yaml ``fit:``).
@@ -861,6 +862,8 @@ def run_fit(
     # Persistent surfel ids of the model's rows (columns of surfels.npz).
     next_id = int(state.get("next_id", model.n)) if state is not None else 0
     ids = record_ids(records[-1]) if records else np.zeros(0, dtype=np.int64)
+    # One line per frame with elapsed time and ETA (a resumed run counts what is left).
+    progress = Progress(n_frames - start, f"session {data.session}: frame")
     for t in range(start, n_frames):
         t0 = time.perf_counter()
         labels = data.labels(t)
@@ -988,12 +991,10 @@ def run_fit(
                 "background": background,
             },
         )
-        # Progress for the job's log (one line per frame; a resumed run starts later).
-        print(
-            f"session {data.session}: frame {t + 1}/{n_frames}, {iters} steps, "
+        progress.step(
+            f"(frame {t + 1} of {n_frames}), {iters} steps, "
             f"input-view PSNR {', '.join(f'{v:.1f}' for v in view_psnr)} dB, "
-            f"{rec['seconds']:.1f} s",
-            flush=True,
+            f"{rec['seconds']:.1f} s"
         )
 
     return outputs.write_outputs(

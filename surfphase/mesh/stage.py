@@ -49,6 +49,7 @@ from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths,
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
 from surfphase.mesh.vtkxml import write_polydata, write_pvd
 from surfphase.mesh.windows import window_positions
+from surfphase.progress import Progress
 
 DEFAULTS: dict = {
     "voxels": 64,  # voxels along the longest side of the surfels' bounding box
@@ -287,7 +288,8 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
             flush=True,
         )
     todo = [t for t in positions if t not in records]
-    for i, t in enumerate(todo):
+    progress = Progress(len(todo), f"mesh {s.session}: frames to do")
+    for t in todo:
         t0 = time.perf_counter()
         a = surf["alive"][t]
         verts, faces = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
@@ -318,11 +320,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
         with atomic_path(_frame_file(work, frame)) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, **rec)
         records[t] = rec
-        print(
-            f"mesh {s.session}: frame {frame} meshed ({i + 1}/{len(todo)} to do), "
-            f"{len(verts)} vertices, {float(rec['seconds']):.1f} s",
-            flush=True,
-        )
+        progress.step(f"(mesh {s.session}: frame {frame} meshed), {len(verts)} vertices")
     return [records[t] for t in positions]
 
 

@@ -49,6 +49,7 @@ from torch import nn
 from surfphase.io import atomic_path, atomic_write_json
 from surfphase.prior.interface import check_video
 from surfphase.prior.sdedit import check_strength, flow_sdedit_times, refine_in_chunks
+from surfphase.progress import Progress
 
 WEIGHTS = "embedded.pt"
 #: Smallest t in the velocity of a clean-video prediction (``predict: x``).
@@ -328,6 +329,7 @@ class EmbeddedPrior:
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_at)
         self.model.train()
         losses, t0 = [], time.perf_counter()
+        progress = Progress(steps, "prior training: step", log=log)
         for step in range(steps):
             wins = [
                 self._window(data, rng, T, crop, focus, float(p["crop_focus"]))
@@ -354,10 +356,7 @@ class EmbeddedPrior:
             self._update_ema(min(float(p["ema"]), (1 + step) / (10 + step)))
             losses.append(float(loss.detach()))
             if log and ((step + 1) % 50 == 0 or step + 1 == steps):
-                log(
-                    f"step {step + 1}/{steps} loss {np.mean(losses[-50:]):.4f} "
-                    f"{time.perf_counter() - t0:.1f} s"
-                )
+                progress.step(f"loss {np.mean(losses[-50:]):.4f}", n=step + 1 - progress.done)
         self.model.eval()
         return {
             "steps": steps,

@@ -156,8 +156,14 @@ def refine_in_chunks(
     Returns:
         (T, H, W) float32.
     """
+    from surfphase.progress import Progress
+
     windows = temporal_chunks(video.shape[0], chunk, overlap)
-    results = [refine_chunk(video[a:b], k) for k, (a, b) in enumerate(windows)]
+    progress = Progress(len(windows), "refine: window")
+    results = []
+    for k, (a, b) in enumerate(windows):
+        results.append(refine_chunk(video[a:b], k))
+        progress.step(f"(frames {a}-{b - 1})")
     return merge_chunks(video.shape[0], windows, results)
 
 
