@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from surfphase.progress import Progress, format_seconds
 from surfphase.prior.sdedit import refine_in_chunks
+from surfphase.progress import Progress, format_seconds
 
 
 def test_eta_is_the_recent_mean_times_what_is_left():
