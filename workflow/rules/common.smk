@@ -19,6 +19,7 @@ from pathlib import Path
 import pandas as pd
 import surfphase
 from snakemake.exceptions import WorkflowError
+from snakemake.settings.types import DeploymentMethod
 from snakemake.utils import min_version, validate
 
 min_version("8.0")
@@ -26,7 +27,12 @@ min_version("8.0")
 validate(config, schema="../schemas/config.schema.yaml")
 
 RESULTS = config["results"].rstrip("/")
-SURFPHASE = config.get("surfphase_command") or f"{shlex.quote(sys.executable)} -m surfphase"
+# Jobs call the Python that runs Snakemake; with `--sdm conda` each job runs inside
+# envs/surfphase.yaml's environment instead, so they call that environment's python.
+IN_CONDA = DeploymentMethod.CONDA in workflow.deployment_settings.deployment_method
+SURFPHASE = config.get("surfphase_command") or (
+    "python -m surfphase" if IN_CONDA else f"{shlex.quote(sys.executable)} -m surfphase"
+)
 PACKAGE_DIR = Path(surfphase.__file__).parent  # the package the jobs run
 
 
