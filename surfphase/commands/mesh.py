@@ -62,8 +62,9 @@ def register(subparsers) -> None:
         help="one mesh per fitted frame (PLY, metres, per-vertex velocity in m/s)",
         description="Fuse the fitted surfels' rendered depth (input and orbit views) into "
         "a truncated signed distance volume, run marching cubes, clean with pymeshlab and "
-        "write OUT/<frame:06d>.ply (x y z in m, vx vy vz in m/s, speed colour) and "
-        "OUT/mesh.json. Finished frames are kept in OUT.partial/, so a killed run, rerun, "
+        "write OUT/<frame:06d>.ply (x y z in m, vx vy vz in m/s, speed colour), for "
+        "ParaView OUT/vtk/<frame:06d>.vtp (point arrays velocity and speed, m/s) and "
+        "OUT/<session>.pvd (the time series, s), and OUT/mesh.json. Finished frames are kept in OUT.partial/, so a killed run, rerun, "
         "goes on where it stopped. With --window K --window-size N only the K-th window "
         "of N frames is meshed, into a window folder for `surfphase mesh-gather`.",
     )
@@ -85,7 +86,8 @@ def register(subparsers) -> None:
         "mesh-gather",
         help="gather mesh window folders into one mesh folder (as a single mesh job)",
         description="Read the window folders written by `surfphase mesh --window` and write "
-        "OUT/<frame:06d>.ply and OUT/mesh.json, the same files as one `surfphase mesh` run.",
+        "OUT/<frame:06d>.ply, OUT/vtk/, OUT/<session>.pvd and OUT/mesh.json, the same files "
+        "as one `surfphase mesh` run.",
     )
     g.add_argument("--windows", nargs="+", required=True, help="window folders")
     g.add_argument("--out", required=True, help="output folder")
