@@ -147,13 +147,17 @@ def _found(images: list[np.ndarray], board: BoardSpec, min_corners: int) -> int:
     )
 
 
-def diagnose(images: list[np.ndarray], board: BoardSpec, min_corners: int = 4) -> list[str]:
+def diagnose(
+    images: list[np.ndarray], board: BoardSpec, min_corners: int = 4, found_elsewhere: int = 0
+) -> list[str]:
     """Likely causes, best first, of the board not being found in ``images``.
 
     Tries, on each image: the board inverted (and not), ``squares_x`` and ``squares_y``
     swapped, the board's markers (their ids against the board's), and the markers of
     other common dictionaries (:data:`COMMON_DICTIONARIES`), both polarities. Each cause
-    says what was seen, in how many of the ``len(images)`` images.
+    says what was seen, in how many of the ``len(images)`` images. ``found_elsewhere``:
+    views of the same camera where the board was found as described (then markers
+    without corners mean a board partly in view rather than a wrong description).
     """
     from dataclasses import replace
 
@@ -199,6 +203,13 @@ def diagnose(images: list[np.ndarray], board: BoardSpec, min_corners: int = 4) -
                 f"squares_y {swapped.squares_y} (columns × rows) the board is found in {k} "
                 f"of {n} images"
             )
+    if with_own and not causes and found_elsewhere:
+        causes.append(
+            f"the board as described is found in {found_elsewhere} other views of this "
+            f"camera, and its markers are seen in {with_own} of these {n} images without "
+            f"{min_corners} usable corners: the board is only partly in view, too oblique, "
+            "too small or blurred there; record more views with the whole board in view"
+        )
     if with_own and not causes:
         causes.append(
             f"markers of {board.dictionary} with the board's ids are found in {with_own} of "

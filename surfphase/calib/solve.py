@@ -389,9 +389,10 @@ def _detect(sources, board, min_corners, min_images, where):
                     missing.append(name)
         found = len(detections[n])
         if found < min_images:
-            pick = missing[:: max(1, len(missing) // DIAGNOSE_VIEWS)][:DIAGNOSE_VIEWS]
+            spaced = np.linspace(0, len(missing) - 1, min(DIAGNOSE_VIEWS, len(missing)))
+            pick = [missing[k] for k in np.unique(np.round(spaced).astype(int))]
             images = [img for _, img in src.iter_views(pick)]
-            causes = diagnose(images, board, min_corners) if images else []
+            causes = diagnose(images, board, min_corners, found) if images else []
             what = "images" if src.kind == "folder" else "sampled frames"
             msg = (
                 f"{where}board found in only {found} of {len(src.names)} {what} of "
@@ -665,12 +666,13 @@ def calibrate_rig_detailed(
 
     # Step 5: checks against the single-camera calibrations and the per-view extrinsics.
     check: dict[str, dict] = {n: {} for n in names}
-    moved = []
+    moved, moved_cams = [], []
     for c, n in enumerate(names):
         K, _ = problem.intrinsics(x, c)
         figures, w = checks.intrinsics_warnings(n, K, single[n][0], where)
         check[n].update({"joint_" + k: v for k, v in figures.items()})
         moved += w
+        moved_cams += [n] if w else []
     intrinsics_from = "joint solve"
     if moved:
         # The shared views pull the intrinsics away from what each camera's own views
@@ -678,8 +680,8 @@ def calibrate_rig_detailed(
         intrinsics_from = "single-camera calibrations (the joint solve disagreed)"
         warn += moved
         warn.append(
-            f"{where}the joint solve moved the intrinsics away from the single-camera "
-            "calibrations (above): the shared views do not agree with each camera's own "
+            f"{where}the joint solve moved the intrinsics of {', '.join(moved_cams)} away "
+            "from the single-camera calibrations (above): the shared views do not agree with each camera's own "
             "views (unsynchronised frames, a board that is not flat, or too few shared "
             "views). The intrinsics are kept from the single-camera calibrations and only "
             "the extrinsics and board poses are solved; check the extrinsics"
