@@ -143,7 +143,8 @@ def test_board_found_in_too_few_images(rig_images, calibration, tmp_path):
         calibrate_rig(board, {"cam0": dirs["cam0"], "cam1": cam1}, min_images=6, rig="rig01")
     assert str(e.value).startswith(
         f"rig rig01: board found in only 3 of 12 images of cam1 ({cam1}) (need 6); likely "
-        "cause: no ArUco markers of DICT_4X4_50 or of another common dictionary"
+        "cause: no ArUco markers of DICT_4X4_50 are found in 9 images, nor of another "
+        "common dictionary in 4 of them"
     )
     # The CLI reports it as a user error.
     args = ["calibrate", "--rig", "rig01", "--board", str(board), "--out", str(tmp_path / "o")]

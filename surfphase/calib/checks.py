@@ -121,19 +121,16 @@ def check_units(
     if not far:
         return
     worst = max(far.values())
-    unit, factor = (
-        ("millimetres", 1000.0)
-        if worst > 100 * MAX_BOARD_DISTANCE_M
-        else (
-            "centimetres",
-            100.0,
-        )
-    )
     cams = ", ".join(f"{n} {d:.4g} m" for n, d in far.items())
+    guesses = "; ".join(
+        f"in {unit} they are {square_length / f:g} and {marker_length / f:g} m (cameras "
+        f"{worst / f:.3g} m away)"
+        for unit, f in (("millimetres", 1000.0), ("centimetres", 100.0))
+        if worst / f <= MAX_BOARD_DISTANCE_M
+    )
     raise ValueError(
         f"{where}the cameras are implausibly far from the board ({cams}, median over "
         f"their views; limit {MAX_BOARD_DISTANCE_M:g} m): the board's lengths must be in "
-        f"metres. square_length {square_length:g} and marker_length {marker_length:g} look "
-        f"like {unit}: in metres they are {square_length / factor:g} and "
-        f"{marker_length / factor:g}"
+        f"metres, and square_length {square_length:g}, marker_length {marker_length:g} "
+        f"are not" + (f": if they are {guesses}" if guesses else "")
     )

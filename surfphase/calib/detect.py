@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -132,10 +133,15 @@ COMMON_DICTIONARIES = (
 )
 
 
+@functools.lru_cache(maxsize=16)
+def _marker_detector(dictionary: str) -> cv2.aruco.ArucoDetector:
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    return cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters())
+
+
 def _markers(image: np.ndarray, dictionary: str) -> np.ndarray:
     """(M,) ids of the markers of ``dictionary`` found in ``image``."""
-    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-    _, ids, _ = cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters()).detectMarkers(image)
+    _, ids, _ = _marker_detector(dictionary).detectMarkers(image)
     return np.zeros(0, dtype=int) if ids is None else ids.ravel().astype(int)
 
 
@@ -217,15 +223,18 @@ def diagnose(
             "and squares_y (columns × rows), square_length and marker_length against the "
             "printed board"
         )
+    # Four images, dictionaries in order until one is seen (the scan is slow: a
+    # chessboard offers many candidate squares).
+    few = [images[k] for k in np.unique(np.linspace(0, n - 1, min(4, n)).astype(int))]
     if not with_own:
         seen = {}
-        few = images[:: max(1, len(images) // 6)][:6]
         for name in COMMON_DICTIONARIES:
             if name == board.dictionary:
                 continue
             counts = [max(len(_markers(im, name)), len(_markers(255 - im, name))) for im in few]
             if sum(c >= 2 for c in counts):
                 seen[name] = (sum(c >= 2 for c in counts), max(counts))
+                break
         for name, (k, most) in sorted(seen.items(), key=lambda kv: -kv[1][0]):
             causes.append(
                 f"markers of another dictionary, {name} (or a smaller one of its marker size), "
@@ -234,7 +243,8 @@ def diagnose(
             )
     if not causes:
         causes.append(
-            f"no ArUco markers of {board.dictionary} or of another common dictionary are found "
-            f"in {n} images, as they are or inverted: is the board in view, in focus and lit?"
+            f"no ArUco markers of {board.dictionary} are found in {n} images, nor of another "
+            f"common dictionary in {len(few)} of them, as they are or inverted: is the board "
+            "in view, in focus and lit?"
         )
     return causes

@@ -45,6 +45,8 @@ from surfphase.cameras import Camera
 #: With the board's polarity automatic, a camera whose views were all found in one
 #: polarity, this many of them, is no longer tried in the other.
 STICKY_POLARITY = 5
+#: Fewest moments shared with camera 0 for a camera's extrinsics to be checked.
+MIN_SHARED = 3
 #: Views diagnosed when a camera has too few (evenly spaced among those without the board).
 DIAGNOSE_VIEWS = 12
 
@@ -629,6 +631,20 @@ def calibrate_rig_detailed(
                 f"consistently ({len(split)} moments did not fit one board pose): are "
                 f"{sources[names[0]].path} and {sources[names[c]].path} synchronised?"
             )
+        lost = sum(1 for m in split if names[c] in m["cameras"] and names[0] in m["cameras"])
+        if lost >= 2 and lost > len(tied):
+            warn.append(
+                f"{where}{names[c]}: {lost} of the {lost + len(tied)} moments it shares with "
+                f"{names[0]} do not fit one board pose: are {sources[names[0]].path} and "
+                f"{sources[names[c]].path} synchronised (give a timestamps file), and was "
+                "the board flat and still?"
+            )
+        if len(tied) < MIN_SHARED:
+            warn.append(
+                f"{where}{names[c]}: its pose relative to {names[0]} rests on only "
+                f"{len(tied)} shared moment(s), which nothing checks; record more views of "
+                f"the board seen by both (at least {MIN_SHARED})"
+            )
 
     # Step 4: everything free, plain least squares; reject views that still do not fit.
     poses = alone_poses(key_of, extr, poses)
@@ -750,10 +766,10 @@ def calibrate_rig_detailed(
         residuals[v[0]][v[1]] = r
     cov, sigma = _covariance(problem, x, active)
     sd = _uncertainties(problem, x, cov, names)
-    for w in warn:
-        warnings.warn(w, CalibrationWarning, stacklevel=2)
     if strict and warn:
         raise ValueError("; ".join(warn))
+    for w in warn:
+        warnings.warn(w, CalibrationWarning, stacklevel=2)
     report = _report(rig, board, reference, names, sources, cameras, residuals, rejected, sd, sigma)
     report["sync"] = sync
     report["split_moments"] = split
