@@ -635,9 +635,14 @@ def calibrate_rig_detailed(
         if lost >= 2 and lost > len(tied):
             warn.append(
                 f"{where}{names[c]}: {lost} of the {lost + len(tied)} moments it shares with "
-                f"{names[0]} do not fit one board pose: are {sources[names[0]].path} and "
-                f"{sources[names[c]].path} synchronised (give a timestamps file), and was "
-                "the board flat and still?"
+                f"{names[0]} do not fit one board pose: "
+                + (
+                    f"although paired by timestamps (within {sync['sync_tolerance_s']:.3g} s), "
+                    "was the board flat and still, and are the timestamps right?"
+                    if sync["mode"] == "timestamps"
+                    else f"are {sources[names[0]].path} and {sources[names[c]].path} "
+                    "synchronised (give a timestamps file), and was the board flat and still?"
+                )
             )
         if len(tied) < MIN_SHARED:
             warn.append(
