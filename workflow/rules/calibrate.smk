@@ -1,10 +1,3 @@
-def rig_timestamps(rig):
-    """The rig's timestamps file (column ``timestamps`` of rigs.tsv), or ""."""
-    if "timestamps" not in rigs.columns:
-        return ""
-    return resolve(rigs, rigs.loc[rig, "timestamps"])
-
-
 rule calibrate:
     """ChArUco calibration of one rig: intrinsics, distortion, extrinsics in the lab frame.
 
@@ -14,7 +7,9 @@ rule calibrate:
     input:
         board=lambda wc: existing([resolve(rigs, rigs.loc[wc.rig, "board"])]),
         images=lambda wc: existing(rig_cameras(wc.rig).values()),
-        timestamps=lambda wc: existing([rig_timestamps(wc.rig)]),
+        timestamps=lambda wc: existing(
+            [resolve(rigs, rigs.loc[wc.rig].get("timestamps", ""))]
+        ),
     output:
         cameras=f"{RESULTS}/calib/{{rig}}/cameras.json",
         report=f"{RESULTS}/calib/{{rig}}/report.json",
@@ -23,10 +18,10 @@ rule calibrate:
         surfphase=SURFPHASE,
         board=lambda wc: resolve(rigs, rigs.loc[wc.rig, "board"]),
         cams=lambda wc: cam_args(rig_cameras(wc.rig)),
-        timestamps=lambda wc: (
-            f"--timestamps {shlex.quote(rig_timestamps(wc.rig))}"
-            if rig_timestamps(wc.rig)
-            else ""
+        timestamps=lambda wc: " ".join(
+            f"--timestamps {shlex.quote(p)}"
+            for p in [resolve(rigs, rigs.loc[wc.rig].get("timestamps", ""))]
+            if p
         ),
         min_images=config["calibrate"]["min_images"],
         code=code_version("calib", "commands/calibrate"),
