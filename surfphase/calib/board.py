@@ -5,8 +5,9 @@
 * ``squares_x``, ``squares_y``: squares along the board's x (columns) and y (rows);
 * ``square_length``, ``marker_length``: chessboard square and ArUco marker sides;
 * ``dictionary``: an OpenCV predefined dictionary name, e.g. ``DICT_4X4_50``;
-* ``reference_image`` (optional): file name of the calibration image that defines the
-  lab frame; by default the image sorted first in the first camera's folder;
+* ``reference_image`` (optional): the calibration view that defines the lab frame: an
+  image's file name, or for recordings a view name ``fNNNNNN`` (camera 0's frame
+  index); by default the first view (by name) in which camera 0 sees the board;
 * ``lab_origin_in_board`` (optional, default the centre of the grid's bottom edge):
   ``[x, y]`` or ``[x, y, z]``, the lab origin in board coordinates (metres);
 * ``inverted`` (optional): ``true`` for a board printed inverted (white markers on

@@ -155,6 +155,7 @@ def _bench(args: argparse.Namespace) -> int:
         "render_s": round(t1 - t0, 2),
         "calibrate_s": round(t2 - t1, 2),
         "baseline_err_pct": float(100 * abs(b / bt - 1)),
+        "warnings": cal.report["warnings"],
         "cameras": rows,
     }
     print(json.dumps(out, indent=1))
