@@ -202,3 +202,27 @@ def test_workflow_passes_the_rigs_timestamps(rig, tmp_path):
     report = json.loads((tmp_path / "results" / "calib" / "rigv" / "report.json").read_text())
     assert report["sync"]["mode"] == "timestamps"
     assert report["sync"]["cameras"]["cam1"]["alone"] == LEAD
+
+
+def test_timestamps_errors_name_the_file_and_camera(rig, tmp_path):
+    from surfphase.calib.sources import open_sources
+
+    cams = {"cam0": rig / "cam0.tif", "cam1": rig / "cam1.tif"}
+    bad = tmp_path / "ts.csv"
+    bad.write_text("cam,time\n0,1.0\n")
+    with pytest.raises(ValueError, match=f"{bad}: timestamps need the columns cam_id and"):
+        open_sources(cams, timestamps=bad)
+    lines = (rig / "timestamps.csv").read_text().splitlines()
+    bad.write_text("\n".join(lines[:-1]) + "\n")  # cam1's last frame missing
+    with pytest.raises(ValueError, match=f"{bad}: 17 timestamps for camera cam1, whose "):
+        open_sources(cams, timestamps=bad)
+    with pytest.raises(ValueError, match="timestamps .* are for recordings"):
+        open_sources({n: rig / "images" / n for n in cams}, timestamps=rig / "timestamps.csv")
+    with pytest.raises(ValueError, match="not a mix"):
+        open_sources({"cam0": rig / "cam0.tif", "cam1": rig / "images" / "cam1"})
+    # Sampling: at most max_frames, evenly spaced, the first frame included.
+    src, sync = open_sources(cams, timestamps=rig / "timestamps.csv", max_frames=4)
+    assert [src["cam0"].frame_of[v] for v in src["cam0"].names] == [0, 5, 10, 15]
+    assert sorted(src["cam1"].frame_of[v] for v in src["cam1"].names if "-" not in v) == [
+        LEAD + k for k in (0, 5, 10, 15)
+    ]
