@@ -5,10 +5,14 @@
 * ``squares_x``, ``squares_y``: squares along the board's x (columns) and y (rows);
 * ``square_length``, ``marker_length``: chessboard square and ArUco marker sides;
 * ``dictionary``: an OpenCV predefined dictionary name, e.g. ``DICT_4X4_50``;
-* ``reference_image`` (optional): file name of the calibration image that defines the
-  lab frame; by default the image sorted first in the first camera's folder;
+* ``reference_image`` (optional): the calibration view that defines the lab frame: an
+  image's file name, or for recordings a view name ``fNNNNNN`` (camera 0's frame
+  index); by default the first view (by name) in which camera 0 sees the board;
 * ``lab_origin_in_board`` (optional, default the centre of the grid's bottom edge):
-  ``[x, y]`` or ``[x, y, z]``, the lab origin in board coordinates (metres).
+  ``[x, y]`` or ``[x, y, z]``, the lab origin in board coordinates (metres);
+* ``inverted`` (optional): ``true`` for a board printed inverted (white markers on
+  black), ``false`` for a normal one; without the key each image is tried normal first,
+  then inverted (``255 − image``), and the report says which was found.
 
 Board frame (OpenCV's): origin at the grid's top-left corner, x along the columns,
 y along the rows (down the printed board), z = x × y (into the board). In the
@@ -41,6 +45,7 @@ class BoardSpec:
     dictionary: str = "DICT_4X4_50"
     reference_image: str | None = None
     lab_origin_in_board: tuple[float, float, float] | None = None
+    inverted: bool | None = None
 
     @property
     def lab_origin(self) -> np.ndarray:
@@ -90,6 +95,9 @@ def board_from_dict(d: dict, source: str = "board") -> BoardSpec:
             raise ValueError(f"{source}: lab_origin_in_board must be [x, y] or [x, y, z] metres")
         origin = tuple(origin)
     ref = d.get("reference_image")
+    inverted = d.get("inverted")
+    if inverted is not None and not isinstance(inverted, bool):
+        raise ValueError(f"{source}: inverted must be true or false, not {inverted!r}")
     return BoardSpec(
         squares_x=sx,
         squares_y=sy,
@@ -98,6 +106,7 @@ def board_from_dict(d: dict, source: str = "board") -> BoardSpec:
         dictionary=dictionary,
         reference_image=None if ref is None else str(ref),
         lab_origin_in_board=origin,
+        inverted=inverted,
     )
 
 

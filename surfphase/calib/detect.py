@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -51,6 +52,32 @@ def read_gray(path: Path) -> np.ndarray:
     return img
 
 
+def detect_view(
+    image: np.ndarray,
+    board: BoardSpec,
+    detector: cv2.aruco.CharucoDetector | None = None,
+    min_corners: int = 4,
+    order: tuple[bool, ...] = (False, True),
+) -> tuple[Detection, bool]:
+    """Corners of ``board`` in ``image`` (H, W) and whether they were found inverted.
+
+    ``board.inverted`` True or False: that polarity only. None: the polarities of
+    ``order`` (False: the image as it is; True: ``255 − image``, a board printed
+    inverted, white markers on black) until one gives a usable view; if none does, the
+    try with the most corners.
+    """
+    detector = detector or make_detector(board)
+    tries = (bool(board.inverted),) if board.inverted is not None else order
+    best: tuple[Detection, bool] | None = None
+    for inverted in tries:
+        det = detect_corners(255 - image if inverted else image, board, detector)
+        if usable(det, min_corners) is None:
+            return det, inverted
+        if best is None or len(det) > len(best[0]):
+            best = (det, inverted)
+    return best
+
+
 def make_detector(board: BoardSpec) -> cv2.aruco.CharucoDetector:
     """A ChArUco detector for ``board`` with sub-pixel marker corners."""
     params = cv2.aruco.DetectorParameters()
@@ -90,3 +117,134 @@ def usable(det: Detection, min_corners: int = 4) -> str | None:
     if s[1] < 1e-9 * max(s[0], 1e-12) or s[1] < 1e-6:
         return "corners all on one line"
     return None
+
+
+#: Dictionaries tried when the board is not found (each contains the smaller ones of its
+#: marker size: DICT_4X4_1000 finds the markers of DICT_4X4_50, 100 and 250).
+COMMON_DICTIONARIES = (
+    "DICT_4X4_1000",
+    "DICT_5X5_1000",
+    "DICT_6X6_1000",
+    "DICT_7X7_1000",
+    "DICT_ARUCO_ORIGINAL",
+    "DICT_APRILTAG_36h11",
+    "DICT_APRILTAG_25h9",
+    "DICT_APRILTAG_16h5",
+)
+
+
+@functools.lru_cache(maxsize=16)
+def _marker_detector(dictionary: str) -> cv2.aruco.ArucoDetector:
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    return cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters())
+
+
+def _markers(image: np.ndarray, dictionary: str) -> np.ndarray:
+    """(M,) ids of the markers of ``dictionary`` found in ``image``."""
+    _, ids, _ = _marker_detector(dictionary).detectMarkers(image)
+    return np.zeros(0, dtype=int) if ids is None else ids.ravel().astype(int)
+
+
+def _found(images: list[np.ndarray], board: BoardSpec, min_corners: int) -> int:
+    """In how many of ``images`` the board (as given, polarity included) is usable."""
+    det = make_detector(board)
+    return sum(
+        usable(detect_view(im, board, det, min_corners)[0], min_corners) is None for im in images
+    )
+
+
+def diagnose(
+    images: list[np.ndarray], board: BoardSpec, min_corners: int = 4, found_elsewhere: int = 0
+) -> list[str]:
+    """Likely causes, best first, of the board not being found in ``images``.
+
+    Tries, on each image: the board inverted (and not), ``squares_x`` and ``squares_y``
+    swapped, the board's markers (their ids against the board's), and the markers of
+    other common dictionaries (:data:`COMMON_DICTIONARIES`), both polarities. Each cause
+    says what was seen, in how many of the ``len(images)`` images. ``found_elsewhere``:
+    views of the same camera where the board was found as described (then markers
+    without corners mean a board partly in view rather than a wrong description).
+    """
+    from dataclasses import replace
+
+    n = len(images)
+    causes: list[str] = []
+    if board.inverted is not True:
+        k = _found(images, replace(board, inverted=True), min_corners)
+        if k:
+            causes.append(
+                f"the board is printed inverted (white markers on black): it is found in {k} "
+                f"of {n} images once inverted; set 'inverted: true' in the board file"
+                + (" (it says 'inverted: false')" if board.inverted is False else "")
+            )
+    if board.inverted is True:
+        k = _found(images, replace(board, inverted=False), min_corners)
+        if k:
+            causes.append(
+                f"the board is not printed inverted: it is found in {k} of {n} images as they "
+                "are; remove 'inverted: true' from the board file"
+            )
+    board_ids = set(int(i) for i in board.charuco_board().getIds().ravel())
+    own = [
+        np.concatenate([_markers(im, board.dictionary), _markers(255 - im, board.dictionary)])
+        for im in images
+    ]
+    with_own = sum(len(ids) >= 2 for ids in own)
+    outside = sorted(set(np.concatenate(own).tolist()) - board_ids) if with_own else []
+    if outside and not causes:
+        causes.append(
+            f"markers of {board.dictionary} are found in {with_own} of {n} images, but ids "
+            f"{', '.join(map(str, outside[:8]))}{'...' if len(outside) > 8 else ''} are not "
+            f"on a {board.squares_x}×{board.squares_y} board (ids {min(board_ids)}–"
+            f"{max(board_ids)}): the printed board is larger, or of another dictionary; "
+            "check squares_x, squares_y and the dictionary"
+        )
+    if not outside:
+        # Rows and columns swapped: the same markers, another layout.
+        swapped = replace(board, squares_x=board.squares_y, squares_y=board.squares_x)
+        k = _found(images, replace(swapped, inverted=None), min_corners)
+        if k and board.squares_x != board.squares_y:
+            causes.append(
+                f"squares_x and squares_y are swapped: with squares_x {swapped.squares_x}, "
+                f"squares_y {swapped.squares_y} (columns × rows) the board is found in {k} "
+                f"of {n} images"
+            )
+    if with_own and not causes and found_elsewhere:
+        causes.append(
+            f"the board as described is found in {found_elsewhere} other views of this "
+            f"camera, and its markers are seen in {with_own} of these {n} images without "
+            f"{min_corners} usable corners: the board is only partly in view, too oblique, "
+            "too small or blurred there; record more views with the whole board in view"
+        )
+    if with_own and not causes:
+        causes.append(
+            f"markers of {board.dictionary} with the board's ids are found in {with_own} of "
+            f"{n} images, but no ChArUco corner could be placed from them: check squares_x "
+            "and squares_y (columns × rows), square_length and marker_length against the "
+            "printed board"
+        )
+    # Four images, dictionaries in order until one is seen (the scan is slow: a
+    # chessboard offers many candidate squares).
+    few = [images[k] for k in np.unique(np.linspace(0, n - 1, min(4, n)).astype(int))]
+    if not with_own:
+        seen = {}
+        for name in COMMON_DICTIONARIES:
+            if name == board.dictionary:
+                continue
+            counts = [max(len(_markers(im, name)), len(_markers(255 - im, name))) for im in few]
+            if sum(c >= 2 for c in counts):
+                seen[name] = (sum(c >= 2 for c in counts), max(counts))
+                break
+        for name, (k, most) in sorted(seen.items(), key=lambda kv: -kv[1][0]):
+            causes.append(
+                f"markers of another dictionary, {name} (or a smaller one of its marker size), "
+                f"are found in {k} of {len(few)} images tried (up to {most} per image), none of "
+                f"{board.dictionary}: set 'dictionary' in the board file"
+            )
+    if not causes:
+        causes.append(
+            f"no ArUco markers of {board.dictionary} are found in {n} images, nor of another "
+            f"common dictionary in {len(few)} of them, as they are or inverted: is the board "
+            "in view, in focus and lit?"
+        )
+    return causes

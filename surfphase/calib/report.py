@@ -8,7 +8,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surfphase.calib.detect import list_images, read_gray
 from surfphase.calib.solve import Calibration
 from surfphase.cameras import save_cameras
 from surfphase.io import atomic_path, atomic_write_json
@@ -23,11 +22,9 @@ def corners_picture(cal: Calibration, error_gain: float = 50.0) -> np.ndarray:
     """
     panels = []
     reference = cal.report["reference_image"]
-    for name, folder in cal.image_dirs.items():
-        path = folder / reference
-        if not path.exists():
-            path = list_images(folder)[0]
-        gray = read_gray(path)
+    for name, source in cal.sources.items():
+        view = reference if reference in source.frame_of else source.names[0]
+        gray = source.read(view)
         panel = cv2.cvtColor((gray * 0.5 + 64).astype(np.uint8), cv2.COLOR_GRAY2BGR)
         used = cal.residuals.get(name, {})
         images = sorted(cal.detections.get(name, {}))

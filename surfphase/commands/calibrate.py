@@ -1,10 +1,19 @@
-"""``surfphase calibrate``: calibrate a rig from ChArUco images (cameras.json + report)."""
+"""``surfphase calibrate``: calibrate a rig from ChArUco views (cameras.json + report).
+
+Each camera's views are a folder of images or a recording (video, TIFF stack, Photron,
+Phantom), sampled and optionally paired by a timestamps file
+(:mod:`surfphase.calib.sources`). Checks that fail (:mod:`surfphase.calib.checks`) are
+printed to stderr as ``WARNING`` lines and listed in ``report.json``'s ``warnings``;
+``--strict`` makes them errors.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -25,20 +34,31 @@ def parse_cam_args(values: list[str], option: str = "--cam") -> dict[str, Path]:
 
 def _run(args: argparse.Namespace) -> int:
     from surfphase.calib import calibrate_rig_detailed, write_calibration
+    from surfphase.calib.solve import CalibrationWarning
 
     dirs = parse_cam_args(args.cam)
-    cal = calibrate_rig_detailed(
-        Path(args.board),
-        dirs,
-        min_images=args.min_images,
-        rig=args.rig,
-        max_view_rms=args.max_view_rms,
-    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", CalibrationWarning)  # printed below, once each
+        cal = calibrate_rig_detailed(
+            Path(args.board),
+            dirs,
+            min_images=args.min_images,
+            rig=args.rig,
+            max_view_rms=args.max_view_rms,
+            timestamps=Path(args.timestamps) if args.timestamps else None,
+            max_frames=args.max_frames,
+            sync_tolerance=args.sync_tolerance,
+            strict=args.strict,
+        )
     write_calibration(Path(args.out), cal)
     r = cal.report
+    for w in r["warnings"]:
+        print(f"WARNING: {w}", file=sys.stderr)
     print(
         f"rig {args.rig}: RMS {r['rms_px']:.3f} px; "
-        + ", ".join(f"{n} {c['images_used']} images" for n, c in r["cameras"].items())
+        + ", ".join(f"{n} {c['images_used']} views" for n, c in r["cameras"].items())
+        + f"; board polarity {r['polarity']['from']}; intrinsics from {r['intrinsics_from']}"
+        + (f"; {len(r['warnings'])} WARNING(S), see above" if r["warnings"] else "")
         + f"; wrote {args.out}"
     )
     return 0
@@ -47,10 +67,11 @@ def _run(args: argparse.Namespace) -> int:
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "calibrate",
-        help="calibrate a camera rig from ChArUco images",
+        help="calibrate a camera rig from ChArUco images or recordings",
         description="Detect ChArUco corners, solve intrinsics, distortion and extrinsics of "
         "all cameras in the lab frame; write OUT/cameras.json, OUT/report.json, "
-        "OUT/corners.png.",
+        "OUT/corners.png. Each --cam is a folder of images (same file name = same moment) "
+        "or a recording (video, TIFF stack, Photron, Phantom) whose frames are sampled.",
     )
     p.add_argument("--rig", required=True, help="rig id (used in messages and the report)")
     p.add_argument("--board", required=True, help="board YAML")
@@ -58,8 +79,34 @@ def register(subparsers) -> None:
         "--cam",
         action="append",
         required=True,
-        metavar="NAME=DIR",
-        help="a camera's folder of calibration images; the first is camera 0",
+        metavar="NAME=PATH",
+        help="a camera's folder of calibration images or its calibration recording; the "
+        "first is camera 0",
+    )
+    p.add_argument(
+        "--timestamps",
+        help="CSV of per-frame capture times of the recordings (columns cam_id, frame_time "
+        "in s, optional frame_index); only near-simultaneous frames are paired",
+    )
+    p.add_argument(
+        "--max-frames",
+        type=int,
+        default=None,
+        help="most frames sampled from each recording, evenly spaced (default: "
+        "surfphase.calib.sources.MAX_FRAMES)",
+    )
+    p.add_argument(
+        "--sync-tolerance",
+        type=float,
+        default=None,
+        help="most seconds between paired frames (default: a quarter of the slower "
+        "camera's median frame interval)",
+    )
+    p.add_argument(
+        "--strict",
+        action="store_true",
+        help="stop (instead of warning) when a check against the single-camera "
+        "calibrations or the per-view extrinsics fails",
     )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--min-images", type=int, default=6, help="fewest usable images per camera")
@@ -108,10 +155,30 @@ def _bench(args: argparse.Namespace) -> int:
         "render_s": round(t1 - t0, 2),
         "calibrate_s": round(t2 - t1, 2),
         "baseline_err_pct": float(100 * abs(b / bt - 1)),
+        "warnings": cal.report["warnings"],
         "cameras": rows,
     }
     print(json.dumps(out, indent=1))
     return 0
+
+
+def _bench_uncertainty(args: argparse.Namespace) -> int:
+    """Stated sd against true errors on synthetic rigs; prints the summary (JSON)."""
+    from surfphase.calib.uncertainty import run
+
+    t0 = time.perf_counter()
+    out = run(args.rigs, n_poses=args.poses, native=args.native, first_seed=args.seed)
+    summary = {
+        "rigs": args.rigs,
+        "poses": args.poses,
+        "native": args.native,
+        "seconds": round(time.perf_counter() - t0, 1),
+        **out["summary"],
+    }
+    print(json.dumps(summary, indent=1))
+    if args.rows:
+        Path(args.rows).write_text(json.dumps(out["rows"], indent=1))
+    return 0 if summary["honest"] else 1
 
 
 def register_bench(bench_subparsers) -> None:
@@ -121,3 +188,18 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--poses", type=int, default=20, help="calibration poses to render")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_bench)
+    p = bench_subparsers.add_parser(
+        "calib-uncertainty",
+        help="are the calibration's stated sd honest? synthetic rigs with known truth",
+        description="Calibrate RIGS synthetic rigs drawn at random (baseline, focal length, "
+        "distance, distortion) and compare every stated sd (fx, fy, cx, cy; relative "
+        "rvec, tvec, baseline) with the true error: the fraction within 3 sd (target >= "
+        "0.95) and the stated sd over the errors' RMS per kind (target <= 3). Exit status 1 "
+        "when a target is missed.",
+    )
+    p.add_argument("--rigs", type=int, default=20, help="synthetic rigs (trials)")
+    p.add_argument("--poses", type=int, default=20, help="board poses rendered per rig")
+    p.add_argument("--native", type=int, default=512, help="image size (px) of the cameras")
+    p.add_argument("--seed", type=int, default=0, help="first rig's seed")
+    p.add_argument("--rows", help="also write every (quantity, error, sd) row to this JSON")
+    p.set_defaults(func=_bench_uncertainty)
