@@ -588,6 +588,8 @@ def calibrate_rig_detailed(
     poses = initial_poses(key_of, extr)
     for _ in range(max(1, max_refits)):
         keys, problem, active, view_ids = setup(key_of, shared_only=True)
+        if not active:  # every shared moment was split: the check below says so
+            break
         x = problem.pack(Ks, dists, extr, {k: poses[k] for k in keys})
         free = np.ones(x.size, dtype=bool)
         free[: problem.o_extr] = False
