@@ -42,10 +42,17 @@ STAGE_ORDER = [
     "render_views",
     "train_prior",
     "refine",
-    "fit_refined",
+    "fit_stage2",
+    "fit_ablation",
+    "mesh_window",
     "mesh",
+    "mesh_compare",
     "evaluate",
-    "report",
+    "plots",
+    "mesh_snapshots",
+    "report_videos",
+    "campaign_table",
+    "campaign_page",
 ]
 PROFILES = ("local", "slurm")
 
@@ -96,13 +103,16 @@ def snakemake_base(snakefile: Path, camp: Path) -> list[str]:
     return [sys.executable, "-m", "snakemake", "-s", str(snakefile), "--directory", str(camp)]
 
 
-def slurm_profile(camp: Path, base_profile: Path, slurm_cfg: dict | None) -> Path:
+def slurm_profile(
+    camp: Path, base_profile: Path, slurm_cfg: dict | None, device: str = "auto"
+) -> Path:
     """Write the campaign's SLURM profile: the project's plus account and partitions.
 
     ``slurm_cfg`` is the ``slurm:`` mapping of the campaign config (``account``,
     ``partition``, ``gpu_partition``; all optional). GPU rules are those with a ``gpu``
-    resource in the project's profile. Returns the folder of the written profile,
-    ``CAMPAIGN/.surfphase/profiles/slurm``.
+    resource in the project's profile; with ``device`` ``"cpu"`` (the campaign config's
+    ``device``) they request no GPU and run on ``partition``. Returns the folder of the
+    written profile, ``CAMPAIGN/.surfphase/profiles/slurm``.
     """
     prof = yaml.safe_load((base_profile / "config.yaml").read_text()) or {}
     slurm_cfg = slurm_cfg or {}
@@ -119,10 +129,11 @@ def slurm_profile(camp: Path, base_profile: Path, slurm_cfg: dict | None) -> Pat
         defaults["slurm_partition"] = str(slurm_cfg["partition"])
     prof["default-resources"] = defaults
     gpu_part = slurm_cfg.get("gpu_partition")
-    if gpu_part:
-        for res in (prof.get("set-resources") or {}).values():
-            if res.get("gpu"):
-                res["slurm_partition"] = str(gpu_part)
+    for res in (prof.get("set-resources") or {}).values():
+        if device == "cpu":
+            res.pop("gpu", None)  # the jobs run with --device cpu: a GPU would sit idle
+        elif gpu_part and res.get("gpu"):
+            res["slurm_partition"] = str(gpu_part)
     out = camp / ".surfphase" / "profiles" / "slurm"
     header = (
         f"# Written by `surfphase run --cluster slurm` from {base_profile / 'config.yaml'}\n"
@@ -490,7 +501,10 @@ def build_run_command(args: argparse.Namespace) -> tuple[list[str], Path]:
     sessions = [s for item in (args.session or []) for s in item.split(",") if s]
     profiles = snakefile.parent / "workflow" / "profiles"
     if args.cluster == "slurm":
-        profile = slurm_profile(camp, profiles / "slurm", read_config(camp).get("slurm"))
+        cfg = read_config(camp)
+        profile = slurm_profile(
+            camp, profiles / "slurm", cfg.get("slurm"), str(cfg.get("device", "auto"))
+        )
     else:
         profile = profiles / "local"
     if not (profile / "config.yaml").is_file():
