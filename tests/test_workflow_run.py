@@ -150,6 +150,20 @@ def test_bad_session_stops_that_session_only(tiny: Path, tmp_path: Path, problem
     assert not (work / "results/session02/ingest").exists()
 
 
+def test_bad_cell_of_one_row_stops_that_session_only(tiny: Path, tmp_path: Path):
+    """A non-numeric fps in session02's row: session01 is ingested, session02 stops at
+    its sheet check with the sheet, the session, the column and the value."""
+    work = make_workdir(tmp_path, tiny)
+    edit_sheet(work / "config" / "sessions.tsv", "session02", "fps", "fast")
+    r = snakemake(work, "--keep-going", *INGEST_TARGETS)
+    assert r.returncode != 0
+    log = (work / "logs/session_sheet/session02.log").read_text()
+    assert "config/sessions.tsv: session session02 (line 3): column 'fps': 'fast'" in log, log
+    assert (work / "results/session01/ingest/meta.json").exists()
+    assert not (work / "results/session02/ingest").exists()
+    assert not (work / "logs/ingest/session02.log").exists()
+
+
 def test_too_few_calibration_images_names_rig_and_folder(tiny: Path, tmp_path: Path):
     work = make_workdir(tmp_path, tiny)
     rigs = work / "config" / "rigs.tsv"

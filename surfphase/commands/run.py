@@ -35,6 +35,7 @@ from surfphase.io import atomic_write_text
 
 # Stages in the order of DESIGN.md; rules not listed are shown after them.
 STAGE_ORDER = [
+    "session_sheet",
     "calibrate",
     "ingest",
     "mask",
