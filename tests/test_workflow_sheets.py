@@ -115,10 +115,12 @@ def test_bad_cell_fails_only_that_session(campaign: Path, column: str, value: st
 def test_bad_session_id_refuses_the_sheet_in_one_line(campaign: Path):
     sheet = campaign / "config" / "sessions.tsv"
     edit_cell(sheet, "session02", "session", "session 02")
+    head, *rows = sheet.read_text().splitlines()
+    sheet.write_text("\n".join([head, "# a comment line", *rows]) + "\n")
     r = snakemake(campaign, "-n")
     assert r.returncode != 0
     line = next(x for x in (r.stdout + r.stderr).splitlines() if "not valid" in x)
-    assert "config/sessions.tsv: line 3" in line and "'session 02'" in line
+    assert "config/sessions.tsv: line 4" in line and "'session 02'" in line  # the file's line
 
 
 def test_config_typo_fails_the_whole_dag_in_one_line(campaign: Path):

@@ -124,18 +124,24 @@ def read_sheet(path, key, schema, numeric=(), row_problems="keep"):
         if col not in df.columns and "default" in prop:
             df[col] = str(prop["default"])
     key_schema = {"type": "object", "properties": {key: schema["properties"][key]}}
+    # The file's line of each row (pandas skips comment and blank lines).
+    text_lines = path.read_text(errors="replace").splitlines()
+    lines = [i + 1 for i, ln in enumerate(text_lines) if ln.split("#", 1)[0].strip()][1:]
+    if len(lines) != len(df):
+        lines = [None] * len(df)
     problems, rows = {}, []
-    for line, rec in enumerate(df.to_dict("records"), start=2):
+    for k, rec in enumerate(df.to_dict("records")):
+        where = f"line {lines[k]}" if lines[k] else f"row {k + 1}"
         ident = rec[key]
         for err in jsonschema.Draft202012Validator(key_schema).iter_errors(rec):
             raise WorkflowError(
-                f"{path}: line {line}: {key} id {ident!r} is not valid ({err.message}; "
+                f"{path}: {where}: {key} id {ident!r} is not valid ({err.message}; "
                 f"{schema['properties'][key].get('description', '')})"
             )
         rec, why = _cell_problems(rec, schema, numeric)
         rows.append(rec)
         if why:
-            problems[ident] = f"{path}: {key} {ident} (line {line}): " + "; ".join(why)
+            problems[ident] = f"{path}: {key} {ident} ({where}): " + "; ".join(why)
     dup = df[key][df[key].duplicated()].tolist()
     if dup:
         raise WorkflowError(f"{path}: duplicate {key} ids: {', '.join(dup)}")
