@@ -88,3 +88,18 @@ def test_run_record_of_a_dead_process_means_killed(tmp_path: Path):
     assert runmod.previous_run_killed(camp)["pid"] == dead.pid
     path.write_text(json.dumps({**info, "pid": dead.pid, "host": "elsewhere"}))
     assert runmod.previous_run_killed(camp) == {}  # another host: cannot tell
+
+
+def test_file_targets_are_only_those_files(tmp_path: Path):
+    """`surfphase run results/s1/ingest` asks for that output, not the whole campaign."""
+    camp = tmp_path / "camp"
+    (camp / "config").mkdir(parents=True)
+    (camp / "config" / "config.yaml").write_text("results: results\n")
+    rows = [
+        runmod.OutputState("results/s1/ingest", "ingest", "missing", "update pending"),
+        runmod.OutputState("results/s1/fit/x.npz", "fit", "missing", "update pending"),
+    ]
+    target = ["results/s1/ingest"]
+    assert runmod.resolve_targets(Path("Snakefile"), camp, target, [], rows) == target
+    both = runmod.resolve_targets(Path("Snakefile"), camp, ["fit", *target], [], rows)
+    assert both == ["results/s1/fit/x.npz", *target]

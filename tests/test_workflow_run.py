@@ -150,20 +150,6 @@ def test_bad_session_stops_that_session_only(tiny: Path, tmp_path: Path, problem
     assert not (work / "results/session02/ingest").exists()
 
 
-def test_bad_cell_of_one_row_stops_that_session_only(tiny: Path, tmp_path: Path):
-    """A non-numeric fps in session02's row: session01 is ingested, session02 stops at
-    its sheet check with the sheet, the session, the column and the value."""
-    work = make_workdir(tmp_path, tiny)
-    edit_sheet(work / "config" / "sessions.tsv", "session02", "fps", "fast")
-    r = snakemake(work, "--keep-going", *INGEST_TARGETS)
-    assert r.returncode != 0
-    log = (work / "logs/session_sheet/session02.log").read_text()
-    assert "config/sessions.tsv: session session02 (line 3): column 'fps': 'fast'" in log, log
-    assert (work / "results/session01/ingest/meta.json").exists()
-    assert not (work / "results/session02/ingest").exists()
-    assert not (work / "logs/ingest/session02.log").exists()
-
-
 def test_too_few_calibration_images_names_rig_and_folder(tiny: Path, tmp_path: Path):
     work = make_workdir(tmp_path, tiny)
     rigs = work / "config" / "rigs.tsv"
@@ -274,6 +260,11 @@ def test_failed_session_leaves_a_campaign_table_and_page_of_the_others(
     err = table.set_index("session").loc["session02", "error"]
     assert err.startswith("session_sheet failed (log logs/session_sheet/session02.log)")
     assert "column 'fps': 'fast' is not a number" in err
+    # session02 stopped at its sheet check, before its ingest.
+    log = (work / "logs/session_sheet/session02.log").read_text()
+    assert "config/sessions.tsv: session session02 (line 3): column 'fps': 'fast'" in log, log
+    assert not (work / "logs/ingest/session02.log").exists()
+    assert not (work / "results/session02/ingest").exists()
     metrics = json.loads((work / "results/session01/evaluate/metrics.json").read_text())
     row = table.set_index("session").loc["session01"]
     assert row["velocity.method.relative_error"] == pytest.approx(
@@ -304,9 +295,10 @@ def test_status_tells_a_stale_lock_from_a_live_run(tiny: Path, tmp_path: Path, c
     from surfphase.commands.run import lock_note
 
     work = make_workdir(tmp_path, tiny)
+    target = INGEST_TARGETS[:1]
     proc = subprocess.Popen(
         [sys.executable, "-m", "surfphase", "run", "--campaign", str(work), "--cores", "1"]
-        + INGEST_TARGETS,
+        + target,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
@@ -323,12 +315,10 @@ def test_status_tells_a_stale_lock_from_a_live_run(tiny: Path, tmp_path: Path, c
     assert "Snakemake is running" not in text
     assert "note: stale lock: the last run was killed" in text
     assert "`surfphase run` resumes it" in text and "snakemake --unlock --directory" in text
-    assert main(["run", "--campaign", str(work), "--cores", "2", *INGEST_TARGETS]) == 0
+    assert main(["run", "--campaign", str(work), "--cores", "2", *target]) == 0
     out = capsys.readouterr().out
     assert "The previous run (pid " in out and "was killed before it finished" in out
     assert "Releasing its stale lock" in out
-    for s in SESSIONS:
-        assert (work / f"results/{s}/ingest/meta.json").exists()
+    assert (work / f"{target[0]}/meta.json").exists()
     assert not (work / ".surfphase/run.json").exists()
-    assert main(["status", "--campaign", str(work)]) == 0
-    assert "lock" not in capsys.readouterr().out
+    assert lock_note(work) == []  # the resumed run ended and released its lock

@@ -516,10 +516,12 @@ def resolve_targets(
             raise ValueError(
                 f"campaign {camp}: '{f}' is neither a stage ({', '.join(sorted(rules))}) nor a file"
             )
+    # Only files given: those files, not every output of the campaign.
     chosen = [
         o.path
         for o in rows
-        if (not stages or o.rule in stages)
+        if (stages or sessions)
+        and (not stages or o.rule in stages)
         and (not sessions or unit_of(o.path, results) in sessions)
     ]
     if (stages or sessions) and not chosen:
