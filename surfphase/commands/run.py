@@ -641,7 +641,7 @@ class Progress:
         except (OSError, ValueError, AttributeError):
             pass
         line = f"{self._head()} running: " + "; ".join(parts)
-        self.out.write("\r\033[K" + line[: cols - 1])
+        self.out.write("\r\033[K" + middle_cut(line, cols - 1))
         self.out.flush()
 
 
