@@ -236,3 +236,89 @@ def test_full_run_with_refinement(tiny: Path, tmp_path: Path):
     assert metrics["stage1"]["velocity"]["matched"] > 0
     assert (work / "results/prior/prior.json").exists()
     assert (work / f"logs/fit_stage2/{s}.log").exists()
+
+
+def test_failed_session_leaves_a_campaign_table_and_page_of_the_others(
+    tiny: Path, tmp_path: Path, capsys
+):
+    """session02's fps is bad: session01 runs to its report; `surfphase run` then writes
+    the campaign table and page of session01, listing session02 with its error, and
+    Snakemake still plans both outputs for the next run."""
+    from surfphase.cli import main
+
+    work = make_workdir(tmp_path, tiny)
+    (work / "config" / "config.yaml").write_text(
+        (work / "config" / "config.yaml").read_text() + "report:\n  mesh_frames: 1\n"
+    )
+    edit_sheet(work / "config" / "sessions.tsv", "session02", "fps", "fast")
+    assert main(["run", "--campaign", str(work), "--cores", "2"]) == 1
+    out = capsys.readouterr().out
+    assert "Campaign table and page of the 1 finished sessions (failed: session02)" in out
+    table = pd.read_csv(work / "results/campaign/metrics.csv")
+    assert list(table["session"]) == ["session01", "session02"]
+    assert list(table["status"]) == ["finished", "failed"]
+    err = table.set_index("session").loc["session02", "error"]
+    assert err.startswith("session_sheet failed (log logs/session_sheet/session02.log)")
+    assert "column 'fps': 'fast' is not a number" in err
+    # session02 stopped at its sheet check, before its ingest.
+    log = (work / "logs/session_sheet/session02.log").read_text()
+    assert "config/sessions.tsv: session session02 (line 3): column 'fps': 'fast'" in log, log
+    assert not (work / "logs/ingest/session02.log").exists()
+    assert not (work / "results/session02/ingest").exists()
+    metrics = json.loads((work / "results/session01/evaluate/metrics.json").read_text())
+    row = table.set_index("session").loc["session01"]
+    assert row["velocity.method.relative_error"] == pytest.approx(
+        metrics["velocity"]["method"]["relative_error"]
+    )
+    page = (work / "results/campaign/index.html").read_text()
+    assert "partial: 1 of 2 sessions finished" in page
+    assert "is not a number" in page and 'id="session01"' in page
+    # Not taken for Snakemake's own outputs: older than their inputs, so planned again.
+    for f in ("metrics.csv", "index.html"):
+        assert (work / "results/campaign" / f).stat().st_mtime == 0
+    r = snakemake(work, "-n")
+    assert r.returncode == 0, r.stdout + r.stderr
+    jobs = {
+        x.split()[0]: int(x.split()[1])
+        for x in r.stdout.splitlines()
+        if len(x.split()) == 2 and x.split()[1].isdigit()
+    }
+    assert jobs["campaign_table"] == jobs["campaign_page"] == jobs["session_sheet"] == 1
+    assert jobs["ingest"] == jobs["plots"] == 1  # session02's; session01 is done
+
+
+def test_status_tells_a_stale_lock_from_a_live_run(tiny: Path, tmp_path: Path, capsys):
+    """`surfphase run` killed with SIGKILL (with its Snakemake): while it runs, status
+    says so; afterwards it says the lock is stale and how to recover, and the next
+    `surfphase run` says the previous run was killed, releases the lock and resumes."""
+    from surfphase.cli import main
+    from surfphase.commands.run import lock_note
+
+    work = make_workdir(tmp_path, tiny)
+    target = INGEST_TARGETS[:1]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "surfphase", "run", "--campaign", str(work), "--cores", "1"]
+        + target,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    deadline = time.time() + 300
+    while time.time() < deadline and not (work / "logs/ingest").exists():
+        time.sleep(0.2)
+    live = lock_note(work)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert live and live[0].startswith("note: Snakemake is running in this campaign (pid ")
+    assert main(["status", "--campaign", str(work)]) == 0
+    text = capsys.readouterr().out
+    assert "Snakemake is running" not in text
+    assert "note: stale lock: the last run was killed" in text
+    assert "`surfphase run` resumes it" in text and "snakemake --unlock --directory" in text
+    assert main(["run", "--campaign", str(work), "--cores", "2", *target]) == 0
+    out = capsys.readouterr().out
+    assert "The previous run (pid " in out and "was killed before it finished" in out
+    assert "Releasing its stale lock" in out
+    assert (work / f"{target[0]}/meta.json").exists()
+    assert not (work / ".surfphase/run.json").exists()
+    assert lock_note(work) == []  # the resumed run ended and released its lock

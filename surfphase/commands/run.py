@@ -11,6 +11,12 @@ that shows the running jobs, their elapsed time and the last line of their logs.
 campaign's DAG, its rule and whether it is up to date) and tells per session and stage
 whether it is done, failed (outputs missing, log present), outdated (code, params or
 inputs changed) or pending. It never re-implements the DAG.
+
+After a kill: ``status`` tells a stale lock (no Snakemake process works in the
+campaign) from a live run, and ``run`` says the previous run was killed, releases the
+stale lock and resumes. After a run in which sessions failed, ``run`` writes the
+campaign table and page of the sessions that finished, listing the failed ones with
+their error, dated so that Snakemake rewrites them on the next run.
 """
 
 from __future__ import annotations
@@ -23,8 +29,11 @@ import os
 import re
 import select
 import shlex
+import signal
+import socket
 import subprocess
 import sys
+import textwrap
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +44,7 @@ from surfphase.io import atomic_write_text
 
 # Stages in the order of docs/method.md §1; rules not listed are shown after them.
 STAGE_ORDER = [
+    "session_sheet",
     "calibrate",
     "ingest",
     "mask",
@@ -42,10 +52,17 @@ STAGE_ORDER = [
     "render_views",
     "train_prior",
     "refine",
-    "fit_refined",
+    "fit_stage2",
+    "fit_ablation",
+    "mesh_window",
     "mesh",
+    "mesh_compare",
     "evaluate",
-    "report",
+    "plots",
+    "mesh_snapshots",
+    "report_videos",
+    "campaign_table",
+    "campaign_page",
 ]
 PROFILES = ("local", "slurm")
 
@@ -96,13 +113,16 @@ def snakemake_base(snakefile: Path, camp: Path) -> list[str]:
     return [sys.executable, "-m", "snakemake", "-s", str(snakefile), "--directory", str(camp)]
 
 
-def slurm_profile(camp: Path, base_profile: Path, slurm_cfg: dict | None) -> Path:
+def slurm_profile(
+    camp: Path, base_profile: Path, slurm_cfg: dict | None, device: str = "auto"
+) -> Path:
     """Write the campaign's SLURM profile: the project's plus account and partitions.
 
     ``slurm_cfg`` is the ``slurm:`` mapping of the campaign config (``account``,
     ``partition``, ``gpu_partition``; all optional). GPU rules are those with a ``gpu``
-    resource in the project's profile. Returns the folder of the written profile,
-    ``CAMPAIGN/.surfphase/profiles/slurm``.
+    resource in the project's profile; with ``device`` ``"cpu"`` (the campaign config's
+    ``device``) they request no GPU and run on ``partition``. Returns the folder of the
+    written profile, ``CAMPAIGN/.surfphase/profiles/slurm``.
     """
     prof = yaml.safe_load((base_profile / "config.yaml").read_text()) or {}
     slurm_cfg = slurm_cfg or {}
@@ -119,10 +139,11 @@ def slurm_profile(camp: Path, base_profile: Path, slurm_cfg: dict | None) -> Pat
         defaults["slurm_partition"] = str(slurm_cfg["partition"])
     prof["default-resources"] = defaults
     gpu_part = slurm_cfg.get("gpu_partition")
-    if gpu_part:
-        for res in (prof.get("set-resources") or {}).values():
-            if res.get("gpu"):
-                res["slurm_partition"] = str(gpu_part)
+    for res in (prof.get("set-resources") or {}).values():
+        if device == "cpu":
+            res.pop("gpu", None)  # the jobs run with --device cpu: a GPU would sit idle
+        elif gpu_part and res.get("gpu"):
+            res["slurm_partition"] = str(gpu_part)
     out = camp / ".surfphase" / "profiles" / "slurm"
     header = (
         f"# Written by `surfphase run --cluster slurm` from {base_profile / 'config.yaml'}\n"
@@ -262,14 +283,36 @@ def format_status(table: dict[str, dict[str, dict]], camp: Path) -> str:
             if cell and cell["state"] == "failed":
                 for log in cell["logs"] or ["(no log)"]:
                     last = _last_line(camp / log) if cell["logs"] else ""
-                    lines.append(f"failed: {s} {u}: {log}" + (f"  | {last}" if last else ""))
-    if (camp / ".snakemake" / "locks").is_dir() and any((camp / ".snakemake" / "locks").iterdir()):
-        lines.append("note: Snakemake is running in this campaign; 'failed' may still be running")
+                    lines += failure_lines(f"failed: {s} {u}: {log}", last)
+    lines += lock_note(camp)
     return "\n".join(lines)
 
 
+def failure_lines(head: str, last: str, width: int = 100) -> list[str]:
+    """``head  | last`` on one line when it fits in ``width``, else ``last`` wrapped
+    under ``head`` (never cut: a log's last line often ends with the file at fault)."""
+    if not last:
+        return [head]
+    if len(head) + 4 + len(last) <= width:
+        return [f"{head}  | {last}"]
+    wrapped = textwrap.wrap(last, width - 6, break_long_words=False, break_on_hyphens=False) or [
+        last
+    ]
+    return [head, *(f"    | {ln}" for ln in wrapped)]
+
+
+def middle_cut(text: str, width: int) -> str:
+    """``text`` cut to ``width`` characters in the middle, keeping its start and end."""
+    if len(text) <= width:
+        return text
+    keep = max(width - 1, 2)
+    head = keep // 3
+    return text[:head] + "…" + text[len(text) - (keep - head) :]
+
+
 def _last_line(path: Path, max_bytes: int = 4096) -> str:
-    """The last non-empty line of a (log) file, or ''."""
+    """The last non-empty line of a (log) file, or '' (at most 1000 characters: longer
+    ones are cut in the middle, keeping the end)."""
     try:
         with open(path, "rb") as f:
             f.seek(0, os.SEEK_END)
@@ -278,7 +321,163 @@ def _last_line(path: Path, max_bytes: int = 4096) -> str:
     except OSError:
         return ""
     lines = [ln.strip() for ln in re.split(r"[\r\n]", text) if ln.strip()]
-    return lines[-1][:120] if lines else ""
+    return middle_cut(lines[-1], 1000) if lines else ""
+
+
+# --- locks: a live run or a killed one --------------------------------------------------
+
+RUN_FILE = Path(".surfphase") / "run.json"  # in the campaign, while `surfphase run` runs
+
+
+def lock_files(camp: Path) -> list[Path]:
+    """Snakemake's lock files of the campaign (``.snakemake/locks``)."""
+    d = camp / ".snakemake" / "locks"
+    return sorted(d.iterdir()) if d.is_dir() else []
+
+
+def snakemake_processes(camp: Path) -> list[int]:
+    """PIDs of Snakemake processes on this host working in ``camp``.
+
+    Snakemake changes into its ``--directory``, so a run of this campaign is a process
+    whose command line runs snakemake and whose working folder is the campaign.
+    """
+    import psutil
+
+    want = os.path.realpath(camp)
+    pids = []
+    for p in psutil.process_iter(["pid", "cwd", "cmdline"]):
+        if p.info["pid"] == os.getpid():
+            continue
+        cmd = p.info.get("cmdline") or []
+        cwd = p.info.get("cwd")
+        if not cwd or not any("snakemake" in Path(c).name or "snakemake/" in c for c in cmd[:3]):
+            continue
+        if os.path.realpath(cwd) == want:
+            pids.append(p.info["pid"])
+    return sorted(pids)
+
+
+def read_run_file(camp: Path) -> dict:
+    """What the last `surfphase run` of ``camp`` recorded while it ran ({} if nothing)."""
+    try:
+        info = json.loads((camp / RUN_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return info if isinstance(info, dict) else {}
+
+
+def previous_run_killed(camp: Path) -> dict:
+    """The record of a `surfphase run` of ``camp`` that ended without cleaning up (killed,
+    or the machine went down); {} when there is none or that run is still alive."""
+    import psutil
+
+    info = read_run_file(camp)
+    if not info:
+        return {}
+    if info.get("host") != socket.gethostname():
+        return {}  # cannot tell from here
+    try:
+        proc = psutil.Process(int(info.get("pid", -1)))
+        if abs(proc.create_time() - float(info.get("created", 0))) < 1.0:
+            return {}  # still running
+    except (psutil.Error, ValueError, TypeError):
+        pass
+    return info
+
+
+def lock_state(camp: Path) -> dict:
+    """``{"locked": bool, "live": [pids], "host": other host or ""}`` of the campaign.
+
+    Locked with no live Snakemake here means a killed run left a stale lock, unless the
+    run record says a run on another host holds it.
+    """
+    locked = bool(lock_files(camp))
+    live = snakemake_processes(camp) if locked else []
+    info = read_run_file(camp)
+    other = info.get("host", "") if info.get("host") not in (None, socket.gethostname()) else ""
+    return {"locked": locked, "live": live, "host": other if locked and not live else ""}
+
+
+def lock_note(camp: Path) -> list[str]:
+    """Status lines about the campaign's lock: a live run, or a stale lock and the fix."""
+    st = lock_state(camp)
+    if not st["locked"]:
+        return []
+    if st["live"]:
+        pids = ", ".join(map(str, st["live"]))
+        return [
+            f"note: Snakemake is running in this campaign (pid {pids}); 'failed' may still be running"
+        ]
+    if st["host"]:
+        return [
+            f"note: the campaign is locked by a run on host {st['host']}; if that run is no "
+            f"longer alive, release the lock with `snakemake --unlock --directory {shlex.quote(str(camp))}`"
+        ]
+    return [
+        "note: stale lock: the last run was killed (no Snakemake process works in this "
+        f"campaign, yet {camp / '.snakemake' / 'locks'} holds its lock). To recover: "
+        "`surfphase run` resumes it (it releases the lock and redoes the incomplete jobs); "
+        f"with plain Snakemake: `snakemake --unlock --directory {shlex.quote(str(camp))}`, "
+        "then run with --rerun-incomplete."
+    ]
+
+
+def release_stale_lock(snakefile: Path, camp: Path, out=None) -> bool:
+    """Before a run: say so when the previous run was killed, and release its stale lock.
+
+    Returns False (and says why) when the campaign is locked by a live run.
+    """
+    out = out or sys.stdout
+    killed = previous_run_killed(camp)
+    st = lock_state(camp)
+    if st["live"]:
+        pids = ", ".join(map(str, st["live"]))
+        out.write(
+            f"Snakemake is already running in this campaign (pid {pids}); wait for it to "
+            f"end, or stop it first (kill {pids}).\n"
+        )
+        return False
+    if st["host"]:
+        out.write(
+            f"The campaign is locked by a run on host {st['host']}. If that run is no longer "
+            f"alive: snakemake --unlock --directory {shlex.quote(str(camp))}\n"
+        )
+        return False
+    if killed:
+        out.write(
+            f"The previous run (pid {killed.get('pid')}, started {killed.get('started', '?')}) "
+            "was killed before it finished.\n"
+        )
+    if st["locked"]:
+        out.write(
+            "Releasing its stale lock (no Snakemake process works in this campaign); "
+            "incomplete outputs are redone.\n"
+            if killed
+            else "The last run was killed: releasing its stale lock (no Snakemake process "
+            "works in this campaign); incomplete outputs are redone.\n"
+        )
+        res = subprocess.run(
+            snakemake_base(snakefile, camp) + ["--unlock"], capture_output=True, text=True
+        )
+        if res.returncode != 0:
+            out.write(f"snakemake --unlock failed:\n{_tail(res.stderr, 10)}\n")
+            return False
+    out.flush()
+    return True
+
+
+def record_run(camp: Path) -> Path:
+    """Write ``.surfphase/run.json`` (this process, host, start), removed when the run ends."""
+    import psutil
+
+    info = {
+        "pid": os.getpid(),
+        "created": psutil.Process().create_time(),
+        "host": socket.gethostname(),
+        "started": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+    atomic_write_text(camp / RUN_FILE, json.dumps(info) + "\n")
+    return camp / RUN_FILE
 
 
 # --- targets ----------------------------------------------------------------------------
@@ -317,10 +516,12 @@ def resolve_targets(
             raise ValueError(
                 f"campaign {camp}: '{f}' is neither a stage ({', '.join(sorted(rules))}) nor a file"
             )
+    # Only files given: those files, not every output of the campaign.
     chosen = [
         o.path
         for o in rows
-        if (not stages or o.rule in stages)
+        if (stages or sessions)
+        and (not stages or o.rule in stages)
         and (not sessions or unit_of(o.path, results) in sessions)
     ]
     if (stages or sessions) and not chosen:
@@ -440,7 +641,7 @@ class Progress:
         except (OSError, ValueError, AttributeError):
             pass
         line = f"{self._head()} running: " + "; ".join(parts)
-        self.out.write("\r\033[K" + line[: cols - 1])
+        self.out.write("\r\033[K" + middle_cut(line, cols - 1))
         self.out.flush()
 
 
@@ -468,7 +669,16 @@ def stream(cmd: list[str], camp: Path, verbose: bool, out=None) -> int:
     prog.close()
     if prog.live:
         out.write("\r\033[K")
-    if rc != 0 and not prog.failed:
+    if rc < 0:
+        try:
+            name = signal.Signals(-rc).name
+        except ValueError:
+            name = f"signal {-rc}"
+        out.write(
+            f"Snakemake was killed ({name}). Run `surfphase run` again to resume: it "
+            "releases the stale lock and redoes the incomplete jobs.\n"
+        )
+    elif rc != 0 and not prog.failed:
         out.write("Snakemake stopped:\n" + "\n".join(tail) + "\n")
     summary = f"{prog.done} of {prog.total or prog.done} steps done"
     if prog.failed:
@@ -490,7 +700,10 @@ def build_run_command(args: argparse.Namespace) -> tuple[list[str], Path]:
     sessions = [s for item in (args.session or []) for s in item.split(",") if s]
     profiles = snakefile.parent / "workflow" / "profiles"
     if args.cluster == "slurm":
-        profile = slurm_profile(camp, profiles / "slurm", read_config(camp).get("slurm"))
+        cfg = read_config(camp)
+        profile = slurm_profile(
+            camp, profiles / "slurm", cfg.get("slurm"), str(cfg.get("device", "auto"))
+        )
     else:
         profile = profiles / "local"
     if not (profile / "config.yaml").is_file():
@@ -513,8 +726,140 @@ def run_cmd(args: argparse.Namespace) -> int:
     if args.print_command:
         print(shlex.join(cmd))
         return 0
-    rc = stream(cmd, camp, verbose=args.verbose or args.dry_run)
+    if args.dry_run:
+        return 1 if stream(cmd, camp, verbose=True) else 0
+    snakefile = find_snakefile(args.snakefile)
+    if not release_stale_lock(snakefile, camp):
+        return 1
+    run_file = record_run(camp)
+    try:
+        rc = stream(cmd, camp, verbose=args.verbose)
+    finally:
+        run_file.unlink(missing_ok=True)
+    whole = not args.targets and not args.session
+    if rc > 0 and whole:
+        try:
+            partial_campaign(snakefile, camp)
+        except Exception as e:  # the run's own failure is what matters: report, go on
+            print(
+                "The campaign table and page of the finished sessions were not written: "
+                f"{type(e).__name__}: {e}"
+            )
     return 1 if rc else 0
+
+
+# --- the campaign's table and page when some sessions failed ------------------------------
+
+
+def campaign_sessions(camp: Path) -> list[str]:
+    """The session ids of the campaign's sessions sheet (config ``sessions``)."""
+    import pandas as pd
+
+    sheet = camp / str(read_config(camp).get("sessions", "config/sessions.tsv"))
+    try:
+        df = pd.read_csv(sheet, sep="\t", dtype=str, comment="#", keep_default_na=False)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{sheet}: cannot read the sessions sheet ({e})") from e
+    df.columns = [c.strip() for c in df.columns]
+    if "session" not in df.columns:
+        raise ValueError(f"{sheet}: no 'session' column")
+    return [v.strip() for v in df["session"] if v.strip()]
+
+
+def session_outcomes(
+    table: dict[str, dict[str, dict]], camp: Path, sessions: list[str]
+) -> dict[str, str]:
+    """``{session: ""}`` for each of ``sessions`` whose every stage is done, else
+    ``{session: why}``: the first failed stage and the last line of its log, or the
+    first stage not run and why (a failed calibration)."""
+    calib_failed = [
+        f"calibrate {u} failed: {_last_line(camp / c['logs'][0]) if c['logs'] else 'no log'}"
+        for u, cells in sorted(table.items())
+        if u.startswith("calib/")
+        for c in cells.values()
+        if c["state"] == "failed"
+    ]
+    out = {}
+    for unit, cells in table.items():
+        if unit not in sessions:
+            continue  # the campaign's own outputs, a rig's calibration, the prior
+        order = stage_columns({unit: cells})
+        failed = [s for s in order if cells[s]["state"] == "failed"]
+        waiting = [s for s in order if cells[s]["state"] != "done"]
+        if failed:
+            s = failed[0]
+            log = cells[s]["logs"][0] if cells[s]["logs"] else ""
+            last = _last_line(camp / log) if log else ""
+            out[unit] = f"{s} failed" + (f" (log {log}): {last}" if log else "")
+        elif waiting:
+            out[unit] = f"{waiting[0]} not run ({cells[waiting[0]]['state']})" + (
+                f"; {'; '.join(calib_failed)}" if calib_failed else ""
+            )
+        else:
+            out[unit] = ""
+    return out
+
+
+def partial_campaign(snakefile: Path, camp: Path, out=None) -> bool:
+    """After a run in which some sessions failed: write the campaign table and page
+    (``RESULTS/campaign/metrics.csv``, ``index.html``) of the sessions that finished,
+    with a row per failed session: its ``status`` and ``error``.
+
+    Snakemake does not take them for its own: they get the modification time 0 (older
+    than any input), so the next run rewrites both from every session. Returns whether
+    they were written (not when nothing finished or the campaign outputs are up to date).
+    """
+    from surfphase.eval.stage import campaign_table
+    from surfphase.report.plots import campaign_page
+
+    out = out or sys.stdout
+    table = campaign_status(snakefile, camp)
+    stages = table.get("campaign", {})
+    if "campaign_table" not in stages or all(c["state"] == "done" for c in stages.values()):
+        return False
+    results = camp / str(read_config(camp).get("results", "results"))
+    outcomes = session_outcomes(table, camp, campaign_sessions(camp))
+    done = sorted(s for s, why in outcomes.items() if not why)
+    failed = sorted(s for s, why in outcomes.items() if why)
+    if not done:
+        out.write("No session finished: no campaign table or page.\n")
+        return False
+    rows = []
+    for s in done:
+        rows.append({**json.loads((results / s / "evaluate" / "metrics.json").read_text())})
+        rows[-1]["session"], rows[-1]["status"], rows[-1]["error"] = s, "finished", ""
+    rows += [{"session": s, "status": "failed", "error": outcomes[s]} for s in failed]
+    metrics_csv = results / "campaign" / "metrics.csv"
+    atomic_write_text(metrics_csv, campaign_table(rows).to_csv(index=False))
+    media: dict[str, dict[str, list[Path]]] = {k: {} for k in ("figures", "overlays", "meshes")}
+    media["videos"] = {}
+    for s in done:
+        rep = results / s / "report"
+        media["figures"][s] = [rep / "velocity.png"] if (rep / "velocity.png").is_file() else []
+        media["overlays"][s] = sorted((rep / "masks").glob("*.png"))
+        media["meshes"][s] = sorted((rep / "meshes").glob("*.png"))
+        media["videos"][s] = sorted((rep / "videos").glob("*.mp4"))
+    prior = results / "prior" / "samples.png"
+    page = results / "campaign" / "index.html"
+    campaign_page(
+        metrics_csv,
+        page,
+        media["figures"],
+        media["overlays"],
+        f"SurfPhase campaign (partial: {len(done)} of {len(outcomes)} sessions finished)",
+        meshes=media["meshes"],
+        videos=media["videos"],
+        prior_samples=prior if prior.is_file() else None,
+    )
+    for f in (metrics_csv, page):
+        os.utime(f, (0, 0))  # older than every input: Snakemake reruns them
+    out.write(
+        f"Campaign table and page of the {len(done)} finished sessions (failed: "
+        f"{', '.join(failed)}): {metrics_csv.relative_to(camp)}, {page.relative_to(camp)}; "
+        "the next run rewrites them.\n"
+    )
+    out.flush()
+    return True
 
 
 def status_cmd(args: argparse.Namespace) -> int:

@@ -36,6 +36,8 @@ import copy
 import hashlib
 import json
 import os
+import pickle
+import shutil
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -502,29 +504,98 @@ def fit_frame(
 
 
 # -- checkpoints -------------------------------------------------------------------------
+# A checkpoint folder holds ``frame_<t:05d>.pt`` (the record of frame t) and two states:
+# ``state.pt`` after the last finished frame and ``state.prev.pt`` after the one before,
+# so that an unreadable newest state or record costs one frame, not the run.
+STATE, PREV_STATE = "state.pt", "state.prev.pt"
+#: What torch.load raises on a damaged, truncated or foreign file.
+_UNREADABLE = (
+    OSError,
+    RuntimeError,
+    EOFError,
+    KeyError,
+    AttributeError,
+    TypeError,
+    ValueError,
+    IndexError,
+    ImportError,
+    pickle.UnpicklingError,
+)
+
+
 def _save_torch(path: Path, obj) -> None:
     with atomic_path(path) as tmp:
         torch.save(obj, tmp)
 
 
+def _save_state(ckpt: Path, state: dict) -> None:
+    """Write ``state.pt``, keeping the one it replaces as ``state.prev.pt``.
+
+    ``state.pt`` always exists once written: the previous one is linked (or copied) to
+    ``state.prev.pt`` first, then the new one is renamed over it.
+    """
+    cur, prev = ckpt / STATE, ckpt / PREV_STATE
+    if cur.exists():
+        tmp = ckpt / (PREV_STATE + ".tmp")
+        tmp.unlink(missing_ok=True)
+        try:
+            os.link(cur, tmp)
+        except OSError:  # a file system without hard links
+            shutil.copy2(cur, tmp)
+        os.replace(tmp, prev)
+    _save_torch(cur, state)
+
+
 def _load_checkpoint(ckpt: Path, key: str) -> tuple[dict | None, list[dict]]:
-    """The saved state and frame records if ``ckpt`` holds a run with this ``key``."""
-    sp = ckpt / "state.pt"
-    if not sp.exists():
-        return None, []
-    try:
-        state = torch.load(sp, weights_only=False)
-        if state.get("key") != key:
-            return None, []
-        records = [
-            torch.load(ckpt / f"frame_{t:05d}.pt", weights_only=False)
-            for t in range(state["next_frame"])
-        ]
-    except (OSError, RuntimeError, EOFError, KeyError, AttributeError) as e:
-        # An unreadable checkpoint (e.g. from another version) means starting afresh.
-        print(f"fit: ignoring unreadable checkpoint {ckpt} ({e})")
-        return None, []
-    return state, records
+    """The newest resumable state in ``ckpt`` for a run with this ``key``, and the
+    records of the frames before it; ``(None, [])`` when there is none.
+
+    A file that cannot be read (damaged, truncated, from another version) is reported,
+    naming it, and deleted; the previous state is tried next, so the run resumes from
+    the last good checkpoint and recomputes the frames after it.
+    """
+    records: dict[int, dict | None] = {}
+
+    def load(path: Path):
+        try:
+            return torch.load(path, weights_only=False)
+        except _UNREADABLE as e:
+            why = f"{type(e).__name__}: {e}".strip()
+            print(f"fit: checkpoint file {path} is unreadable ({why[:200]}); discarded it")
+            path.unlink(missing_ok=True)
+            return None
+
+    def record(t: int) -> dict | None:
+        if t not in records:
+            path = ckpt / f"frame_{t:05d}.pt"
+            rec = load(path) if path.exists() else None
+            if rec is not None and not (isinstance(rec, dict) and rec.get("frame") == t):
+                print(f"fit: checkpoint file {path} does not hold frame {t}; discarded it")
+                path.unlink(missing_ok=True)
+                rec = None
+            records[t] = rec
+        return records[t]
+
+    for name in (STATE, PREV_STATE):
+        path = ckpt / name
+        state = load(path) if path.exists() else None
+        if state is None:
+            continue
+        if not isinstance(state, dict) or state.get("key") != key:
+            return None, []  # another run's checkpoint (other inputs, parameters, code)
+        n = state.get("next_frame")
+        if not isinstance(n, int) or n < 0:
+            print(f"fit: checkpoint file {path} has no frame count; discarded it")
+            path.unlink(missing_ok=True)
+            continue
+        recs = [record(t) for t in range(n)]
+        if all(r is not None for r in recs):
+            if name != STATE:
+                print(f"fit: resuming from {path} (frame {n}): the later frames are recomputed")
+            return state, recs
+        missing = next(t for t, r in enumerate(recs) if r is None)
+        print(f"fit: {path} needs the record of frame {missing}, which is gone")
+    return None, []
 
 
 def _code_fingerprint() -> str:
@@ -979,8 +1050,8 @@ def run_fit(
         )
         records.append(rec)
         _save_torch(ckpt / f"frame_{t:05d}.pt", rec)
-        _save_torch(
-            ckpt / "state.pt",
+        _save_state(
+            ckpt,
             {
                 "key": key,
                 "next_frame": t + 1,

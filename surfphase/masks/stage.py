@@ -27,7 +27,8 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Mapping
+import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -48,6 +49,10 @@ DEFAULTS: dict = {
     "associate": dict(ASSOCIATE_DEFAULTS),
     # Number of overlay pictures (evenly spaced frames).
     "overlay_frames": 4,
+    # A frame whose intensities (0.1 to 99.9 percentile) span less than this fraction of
+    # the full scale is blank (black, saturated, a lens cap); a camera whose every frame
+    # is blank stops the stage, naming the session, camera and video.
+    "min_dynamic_range": 0.01,
 }
 
 
@@ -136,6 +141,80 @@ def read_ingest(ingest_dir: Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
     return meta, cameras, stacks
 
 
+def frame_spans(stack: np.ndarray, max_pixels: int = 65536) -> np.ndarray:
+    """(T, 2) 0.1 and 99.9 percentiles of each frame's intensity, in [0, 1] of full scale.
+
+    Computed on an evenly strided subset of about ``max_pixels`` pixels per frame.
+    """
+    t_n, h, w = stack.shape[:3]
+    step = max(1, int(np.ceil(np.sqrt(h * w / max_pixels))))
+    out = np.empty((t_n, 2), np.float64)
+    for t in range(t_n):
+        img = classical.to_unit_float(stack[t][::step, ::step])
+        out[t] = np.percentile(img, [0.1, 99.9])
+    return out
+
+
+def _where(meta: Mapping, ingest_dir: Path, name: str) -> str:
+    """The camera's video and frame stack, for messages."""
+    cam = (meta.get("cameras") or {}).get(name) if isinstance(meta.get("cameras"), dict) else None
+    stack = ingest_dir / f"{name}.npy"
+    return f"video {cam['source']}, frames {stack}" if cam and cam.get("source") else str(stack)
+
+
+def _frame_list(frames: np.ndarray, most: int = 10) -> str:
+    shown = ", ".join(str(int(t)) for t in frames[:most])
+    return shown + (f", … ({len(frames)} frames)" if len(frames) > most else "")
+
+
+def check_dynamic_range(
+    meta: Mapping, ingest_dir: Path, stacks: Mapping[str, np.ndarray], min_range: float
+) -> list[str]:
+    """Stop on a camera whose every frame is blank; warn about blank frames.
+
+    A frame is blank when its intensities (:func:`frame_spans`) span less than
+    ``min_range`` of the full scale. Returns the warnings (also issued with
+    :func:`warnings.warn`); raises ValueError naming session, camera and files.
+    """
+    session = meta.get("session", Path(ingest_dir).name)
+    notes = []
+    for name, st in stacks.items():
+        spans = frame_spans(st)
+        blank = np.flatnonzero(spans[:, 1] - spans[:, 0] < min_range)
+        if len(blank) == len(st):
+            lo, hi = spans[:, 0].min(), spans[:, 1].max()
+            kind = "black" if hi < 0.5 else "saturated" if lo > 0.5 else "flat"
+            raise ValueError(
+                f"session {session}: camera {name}: every one of its {len(st)} frames is blank "
+                f"({kind}: intensities {lo:.3f} to {hi:.3f} of full scale, a span below "
+                f"masks.min_dynamic_range {min_range}) — check the video, its exposure and "
+                f"the lens ({_where(meta, ingest_dir, name)})"
+            )
+        if len(blank):
+            notes.append(
+                f"session {session}: camera {name}: {len(blank)} of {len(st)} frames are "
+                f"blank (span below {min_range} of full scale), no bubble can be found there: "
+                f"frames {_frame_list(blank)} ({_where(meta, ingest_dir, name)})"
+            )
+    for note in notes:
+        warnings.warn(note, stacklevel=2)
+    return notes
+
+
+def check_bubbles_found(meta: Mapping, ingest_dir: Path, instances, cameras: Sequence[str]) -> None:
+    """Stop when a camera has no bubble (id >= 1) in any frame of the session: the fit
+    needs each bubble in two views. Raises ValueError naming session, camera and files."""
+    session = meta.get("session", Path(ingest_dir).name)
+    found = set(instances.loc[instances.bubble > 0, "camera"])
+    for name in cameras:
+        if name not in found:
+            raise ValueError(
+                f"session {session}: camera {name}: no bubble found in any frame "
+                f"(the other cameras: {', '.join(sorted(found)) or 'none either'}) — check "
+                f"the video and the masks thresholds ({_where(meta, ingest_dir, name)})"
+            )
+
+
 def segment_stack(
     stack: np.ndarray, params: Mapping, backend=None
 ) -> tuple[np.ndarray, list, np.ndarray]:
@@ -171,6 +250,7 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
     ingest_dir, out_dir = Path(ingest_dir), Path(out_dir)
     p = merge_params(params)
     meta, cameras, stacks = read_ingest(ingest_dir)
+    blank_notes = check_dynamic_range(meta, ingest_dir, stacks, float(p["min_dynamic_range"]))
     backend = load_sam(p["sam"]) if p["backend"] == "sam" else None
     t0 = time.perf_counter()
     labels, scores, plates = {}, {}, {}
@@ -178,6 +258,7 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
         labels[name], scores[name], plates[name] = segment_stack(st, p, backend)
     t_seg = time.perf_counter() - t0
     bubble_labels, instances, events = associate(labels, scores, cameras, p["associate"], plates)
+    check_bubbles_found(meta, ingest_dir, instances, list(stacks))
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
@@ -207,6 +288,7 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
                 "bubbles": int(instances.loc[instances.bubble > 0, "bubble"].nunique()),
                 "events": len(events),
                 "segment_seconds": round(t_seg, 3),
+                "warnings": blank_notes,
             },
         )
         out_dir.mkdir(parents=True, exist_ok=True)

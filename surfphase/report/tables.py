@@ -115,6 +115,10 @@ def comparison_table(flat: Mapping) -> pd.DataFrame:
 #: ablation columns are added after the method's (see :func:`summary_table`).
 SUMMARY_COLUMNS = {
     "session": "session",
+    # Only in a campaign table written after a run in which sessions failed
+    # (`surfphase run`): finished / failed, and why it failed.
+    "status": "status",
+    "error": "error",
     "velocity.method.relative_error": "velocity rel. error (method)",
     "velocity.baseline.relative_error": "velocity rel. error (baseline)",
     "stage1.velocity.relative_error": "velocity rel. error (stage 1)",

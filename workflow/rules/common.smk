@@ -3,28 +3,53 @@
 Relative paths inside a sheet are resolved against that sheet's own folder, so a
 campaign folder (sheets + videos) can be moved as a whole.
 
-Problems that concern one session only (an unknown rig, a missing video) are not
-raised here: that session's first job fails with a message naming the session and the
-file, and ``--keep-going`` lets the other sessions finish. Problems with a whole sheet
-(unreadable, a missing column, duplicate ids) stop the workflow before any job runs.
+Problems that concern one session only (an unknown rig, a missing video, a bad cell of
+its row in the sessions sheet: a non-numeric fps, a malformed frame range) are not raised
+here: that session's first job fails with a message naming the session, the file and
+the column, and ``--keep-going`` lets the other sessions finish. Problems with a whole
+sheet (unreadable, a missing column, a bad or duplicate id) and with the config (it is
+campaign-wide) stop the workflow before any job runs, in one line per problem.
 """
 
 import hashlib
 import json
+import math
 import os
 import shlex
 import sys
 from pathlib import Path
 
+import jsonschema
 import pandas as pd
 import surfphase
+import yaml
 from snakemake.exceptions import WorkflowError
 from snakemake.settings.types import DeploymentMethod
 from snakemake.utils import min_version, validate
 
 min_version("8.0")
 
-validate(config, schema="../schemas/config.schema.yaml")
+
+
+def config_problems(cfg, schema_file):
+    """One line per problem of the config (``section.key: why``), or '' when none."""
+    schema = yaml.safe_load((Path(workflow.current_basedir) / schema_file).read_text())
+    lines = []
+    for err in sorted(
+        jsonschema.Draft202012Validator(schema).iter_errors(cfg), key=lambda e: list(e.path)
+    ):
+        where = ".".join(str(k) for k in err.path) or "(top level)"
+        lines.append(f"config {where}: {err.message}")
+    return "\n".join(lines)
+
+
+# The config is campaign-wide: any problem stops the whole workflow, in one line each.
+try:
+    validate(config, schema="../schemas/config.schema.yaml")  # also sets the defaults
+except WorkflowError as e:
+    raise WorkflowError(
+        config_problems(config, "../schemas/config.schema.yaml") or str(e)
+    ) from None
 
 RESULTS = config["results"].rstrip("/")
 # Jobs call the Python that runs Snakemake; with `--sdm conda` each job runs inside
@@ -36,10 +61,51 @@ SURFPHASE = config.get("surfphase_command") or (
 PACKAGE_DIR = Path(surfphase.__file__).parent  # the package the jobs run
 
 
-def read_sheet(path, key, schema, numeric=()):
-    """Read a TSV sheet, check its columns with a JSON schema, index it by ``key``.
+def _cell_problems(row, schema, numeric):
+    """Problems of one sheet row (``{column: text}``) against the row's JSON schema.
 
-    Cells are read as text; the columns in ``numeric`` are converted to numbers first.
+    Returns ``(row, ["column 'c': why", ...])``: the row with its valid numeric cells
+    converted; its other cells, valid or not, are left as text.
+    """
+    text, row, problems, bad = dict(row), dict(row), [], set()
+    for col in numeric:
+        if col not in row:
+            continue
+        try:
+            value = pd.to_numeric(row[col])
+            ok = math.isfinite(float(value))
+        except (ValueError, TypeError):
+            ok = False
+        if ok:
+            row[col] = value
+        else:
+            problems.append(f"column '{col}': {row[col]!r} is not a number")
+            bad.add(col)
+    checked = {k: float(v) if k in numeric else v for k, v in row.items() if k not in bad}
+    validator = jsonschema.Draft202012Validator(schema)
+    for err in sorted(validator.iter_errors(checked), key=lambda e: list(e.path)):
+        if not err.path:
+            continue  # a missing column: checked for the whole sheet
+        col = err.path[0]
+        what = schema.get("properties", {}).get(col, {}).get("description", "")
+        why = {
+            "exclusiveMinimum": f"must be greater than {err.validator_value}",
+            "minimum": f"must be at least {err.validator_value}",
+            "pattern": f"does not match {err.validator_value}",
+        }.get(err.validator, err.message)
+        problems.append(f"column '{col}': {text[col]!r} {why}" + (f" ({what})" if what else ""))
+    return row, problems
+
+
+def read_sheet(path, key, schema, numeric=(), row_problems="keep"):
+    """Read a TSV sheet, check it with a JSON schema, index it by ``key``.
+
+    Cells are read as text; the columns in ``numeric`` are converted to numbers. Each
+    row is checked on its own. The whole sheet is refused (WorkflowError, one line per
+    problem) when it is unreadable, lacks a required column, or has a bad or duplicate
+    id. Other problems of a row are the row's own: with ``row_problems="keep"`` they are
+    kept in ``df.attrs["row_problems"]`` (``{id: message}``) and that row's jobs fail
+    (rule ``session_sheet``); with ``"fail"`` they refuse the sheet too.
     """
     path = Path(path)
     if not path.is_file():
@@ -51,21 +117,55 @@ def read_sheet(path, key, schema, numeric=()):
     df.columns = [c.strip() for c in df.columns]
     for col in df.columns:
         df[col] = df[col].str.strip()
-    for col in numeric:
-        if col in df.columns:
-            try:
-                df[col] = pd.to_numeric(df[col])
-            except ValueError as e:
-                raise WorkflowError(f"{path}: column '{col}' must be numeric ({e})") from e
-    try:
-        validate(df, schema=schema, set_default=True)
-    except WorkflowError as e:
-        raise WorkflowError(f"{path}: invalid sheet\n{e}") from e
+    schema_path = Path(workflow.current_basedir) / schema
+    schema = yaml.safe_load(schema_path.read_text())
+    missing = [c for c in schema.get("required", []) if c not in df.columns]
+    if missing:
+        raise WorkflowError(
+            f"{path}: missing column{'s' if len(missing) > 1 else ''} {', '.join(missing)} "
+            f"(required: {', '.join(schema['required'])}; the sheet has: "
+            f"{', '.join(df.columns) or 'no columns'}; see {schema_path.name})"
+        )
+    for col, prop in schema.get("properties", {}).items():
+        if col not in df.columns and "default" in prop:
+            df[col] = str(prop["default"])
+    key_schema = {"type": "object", "properties": {key: schema["properties"][key]}}
+    # The file's line of each row (pandas skips comment and blank lines).
+    text_lines = path.read_text(errors="replace").splitlines()
+    lines = [i + 1 for i, ln in enumerate(text_lines) if ln.split("#", 1)[0].strip()][1:]
+    if len(lines) != len(df):
+        lines = [None] * len(df)
+    problems, rows = {}, []
+    for k, rec in enumerate(df.to_dict("records")):
+        where = f"line {lines[k]}" if lines[k] else f"row {k + 1}"
+        ident = rec[key]
+        for err in jsonschema.Draft202012Validator(key_schema).iter_errors(rec):
+            raise WorkflowError(
+                f"{path}: {where}: {key} id {ident!r} is not valid ({err.message}; "
+                f"{schema['properties'][key].get('description', '')})"
+            )
+        rec, why = _cell_problems(rec, schema, numeric)
+        rows.append(rec)
+        if why:
+            problems[ident] = f"{path}: {key} {ident} ({where}): " + "; ".join(why)
     dup = df[key][df[key].duplicated()].tolist()
     if dup:
         raise WorkflowError(f"{path}: duplicate {key} ids: {', '.join(dup)}")
+    if problems and row_problems == "fail":
+        raise WorkflowError("\n".join(problems.values()))
+    for col in numeric:
+        if col not in df.columns:
+            continue
+        good = [r[key] not in problems for r in rows]
+        if all(good):
+            df[col] = pd.to_numeric(df[col])
+        else:  # the valid cells converted together (one dtype), the others left as text
+            values = iter(pd.to_numeric(df.loc[good, col]).to_numpy())
+            cells = [next(values) if g else r[col] for g, r in zip(good, rows, strict=True)]
+            df[col] = pd.Series(cells, index=df.index, dtype=object)
     df = df.set_index(key, drop=False)
     df.attrs["path"] = str(path)
+    df.attrs["row_problems"] = problems
     return df
 
 
@@ -88,9 +188,11 @@ def camera_columns(df):
 sessions = read_sheet(
     config["sessions"], "session", "../schemas/sessions.schema.yaml", numeric=["fps"]
 )
-rigs = read_sheet(config["rigs"], "rig", "../schemas/rigs.schema.yaml")
+rigs = read_sheet(config["rigs"], "rig", "../schemas/rigs.schema.yaml", row_problems="fail")
 
 SESSIONS = sessions["session"].tolist()
+# Sessions whose row of the sessions sheet is invalid: {session: why} (rule session_sheet).
+SESSION_PROBLEMS = sessions.attrs["row_problems"]
 RIGS = rigs["rig"].tolist()
 
 
@@ -149,7 +251,14 @@ def code_version(*packages):
 
 
 def ingest_cameras(wc):
-    """The rig's calibration, when the session's rig is a row of rigs.tsv."""
+    """The rig's calibration, when the session's rig is a row of rigs.tsv.
+
+    A session whose row of the sessions sheet is invalid gets the output of rule
+    ``session_sheet`` instead: that job fails with the problem, and the session's ingest
+    (and every later stage) does not run, while the other sessions go on.
+    """
+    if wc.session in SESSION_PROBLEMS:
+        return f"{RESULTS}/{wc.session}/sheet_row.ok"
     if not rig_is_known(wc.session):
         return []
     return f"{RESULTS}/calib/{session_rig(wc.session)}/cameras.json"
@@ -187,3 +296,7 @@ def fit2_settings():
     if far is not None:
         settings.setdefault("far_views", far)
     return settings
+
+
+# The rule that fails a session whose row of the sessions sheet is invalid.
+include: "sheet.smk"
