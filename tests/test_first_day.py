@@ -37,7 +37,7 @@ def lab_folder(tmp_path_factory) -> tuple[Path, Path]:
     """(videos folder as a lab has it, the rig's board file)."""
     root = tmp_path_factory.mktemp("firstday")
     synth = root / "synth"
-    write_campaign(synth, preset="tiny", seed=5, sessions=1, frames=3, native=128)
+    write_campaign(synth, preset="tiny", seed=5, sessions=1, frames=3, native=160)
     videos = root / "recordings"
     (videos / "calib").mkdir(parents=True)
     for cam, label in (("cam0", "left"), ("cam1", "right")):
@@ -59,8 +59,8 @@ def test_new_campaign_then_run_on_lzw_tiffs(lab_folder, tmp_path, capsys):
     assert cfg["refine"]["enabled"] is False and cfg["prior"]["clips"] is None
     assert cfg["ingest"]["scale"] == "auto"
     # The config says why: each session's native size and what it is fitted at.
-    k = auto_scale(128, 128, cfg["ingest"]["fit_size"])
-    assert f"boil01: native 128x128 -> fitted {round(128 * k)}x{round(128 * k)}" in text
+    k = auto_scale(160, 160, cfg["ingest"]["fit_size"])
+    assert f"boil01: native 160x160 -> fitted {round(160 * k)}x{round(160 * k)}" in text
 
     # The one edit: the rig's board (the template is the reference rig's).
     shutil.copy(board, camp / "config" / "board.yaml")

@@ -59,7 +59,7 @@ def make_campaign(root: Path, data: Path, extra: str = "") -> Path:
     (root / "config").mkdir(parents=True)
     (root / "config" / "config.yaml").write_text(
         f"sessions: {data / 'sessions.tsv'}\nrigs: {data / 'rigs.tsv'}\nresults: results\n"
-        "threads: 1\n" + extra
+        "threads: 1\ningest:\n  scale: 0.25\n" + extra
     )
     return root
 

@@ -119,7 +119,7 @@ def write_campaign_sheets(work: Path, rows: list[tuple[str, str]], config: str) 
     )
     (work / "config" / "config.yaml").write_text(
         "sessions: config/sessions.tsv\nrigs: config/rigs.tsv\nresults: results\n"
-        "device: cpu\nthreads: 1\n" + config
+        "device: cpu\nthreads: 1\ningest:\n  scale: 0.25\n" + config
     )
 
 

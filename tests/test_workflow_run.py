@@ -23,6 +23,7 @@ SESSIONS = ("session01", "session02")
 # session's input is read. The full run uses a very short fit.
 INGEST_TARGETS = [f"results/{s}/ingest" for s in SESSIONS]
 SHORT_FIT = (
+    "ingest:\n  scale: 0.25\n"
     "fit:\n  iters_first: 15\n  iters_next: 4\n  n_init: 300\n  render_frames: 1\n"
     "mesh:\n  voxels: 32\n  n_orbit: 3\n"
 )
