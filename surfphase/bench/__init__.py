@@ -1,0 +1,1 @@
+"""Benchmarks behind ``surfphase bench ...`` (accuracy, determinism, comparisons)."""
