@@ -155,7 +155,46 @@ def test_table_rows_mean_and_worst():
     mean, worst = dict(zip(k, rows[2][1], strict=True)), dict(zip(k, rows[3][1], strict=True))
     assert mean["v rel: method"] == pytest.approx(0.3) and worst["v rel: method"] == 0.4
     assert worst["precision"] == 0.5 and worst["bisector/across ÷ truth"] == pytest.approx(1.8)
-    assert worst["|e| vx/vy/vz m/s: method"] == pytest.approx((0.1, 0.4, 0.0))
+    assert worst["abs err vx/vy/vz m/s: method"] == pytest.approx((0.1, 0.4, 0.0))
     assert math.isnan(mean["Chamfer mm"])
     text = acc.format_table([row("a", 0.2, 0.9)])
     assert text.count("\n") == 4 and "| a | 0.200 |" in text
+
+
+def test_ci_sized_benchmark_table(tmp_path, capsys):
+    """The whole benchmark on one bench session of 3 frames with short fits: the table
+    has a row per session plus mean and worst, a column per metric, and the baseline's
+    smoothing grid; the command scores the same results again with --skip-run."""
+    from surfphase.cli import main as cli_main
+
+    small = ["fit.iters_first=15", "fit.iters_next=5", "fit.n_init=400", "mesh.voxels=24"]
+    small += ["mesh.n_orbit=4", "evaluate.compare_meshes=false"]
+    res = acc.run_accuracy_bench(
+        tmp_path / "w", sessions=1, frames=3, set_values=small, samples=2000, log=lambda s: None
+    )
+    rows = acc.summary_rows(res["rows"])
+    assert [r[0] for r in rows] == ["session01", "mean", "worst"]
+    lines = res["table"].splitlines()
+    assert len(lines) == 2 + 3 and all(ln.count("|") == len(acc.COLUMNS) + 2 for ln in lines)
+    r = res["rows"][0]
+    assert "error" not in r
+    for key in ("method", "baseline_raw", "baseline_smoothed"):
+        assert r[key]["matched"] > 0 and np.isfinite(r[key]["relative_error"])
+    assert 0 <= r["detection"]["precision"] <= 1 and r["detection"]["reported"] > 0
+    assert r["frames_without_mesh"] == 0 and np.isfinite(r["chamfer_mm"])
+    assert np.isfinite(r["psnr"]) and 0 < r["ssim"] <= 1
+    grid = res["smoothing"]["grid"]
+    assert len(grid) == len(acc.SMOOTH_WINDOWS_S) * len(acc.SMOOTH_ORDERS)
+    best = min(g["mean_relative_error"] for g in grid)
+    assert r["baseline_smoothed"]["relative_error"] == pytest.approx(best)
+    assert "0.5 r_eq" in res["notes"] and (tmp_path / "w" / "accuracy.md").is_file()
+    capsys.readouterr()
+    argv = ["bench", "accuracy", "--work", str(tmp_path / "w"), "--sessions", "1"]
+    assert (
+        cli_main(
+            [*argv, "--skip-run", "--samples", "2000", *sum((["--set", s] for s in small), [])]
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert out.splitlines()[:5] == lines

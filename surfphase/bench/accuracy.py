@@ -60,15 +60,16 @@ GATE_R_EQ = 0.5
 NEAR_R_EQ = 0.25
 #: A true bubble is attached when its surface comes within this many r_eq of the plate.
 ATTACHED_R_EQ = 0.05
-#: A mesh component belongs to the true bubble whose centroid is nearest, within this
-#: many r_eq (for volume and extent); farther components belong to none.
+#: A mesh component (connected piece) belongs to the true bubble most of its surface
+#: samples are nearest, counting samples within this many r_eq of that bubble's surface
+#: (for volume and extent); a component with none belongs to no bubble.
 COMPONENT_R_EQ = 1.0
 #: Surface samples per mesh and per true surface in each frame.
 SAMPLES = 20000
 #: Config on top of ``surfphase new-campaign``'s defaults.
 BENCH_CONFIG = {"ingest": {"scale": 0.5}, "refine": {"enabled": False}}
 #: Grid of the baseline's track smoothing: windows (s) and polynomial orders.
-SMOOTH_WINDOWS_S = (1e-3, 2e-3, 3e-3, 5e-3, 8e-3, 12e-3)
+SMOOTH_WINDOWS_S = (1e-3, 2e-3, 3e-3, 5e-3, 8e-3, 12e-3, 20e-3)
 SMOOTH_ORDERS = (1, 2, 3)
 
 XYZ, VEL = ["x", "y", "z"], ["vx", "vy", "vz"]
@@ -247,7 +248,8 @@ def frame_surface_metrics(
     of mesh samples within :data:`NEAR_R_EQ` r_eq of any true surface, r_eq of the
     nearest sample's bubble; NaN without a mesh), and per seen true bubble ``bubbles``:
     ``[(id, volume error, extent ratio pred / truth)]`` (volume error ``V/V_true − 1``
-    of the mesh components assigned to it, −1 when none; ratio NaN then).
+    of the mesh components it owns (:data:`COMPONENT_R_EQ`), −1 when none; ratio NaN
+    then). A mesh that joins several bubbles in one piece gives its whole volume to one.
     """
     vis = np.flatnonzero(tf.seen)
     vis_pts = tf.points[np.isin(tf.label, vis)]
@@ -263,14 +265,17 @@ def frame_surface_metrics(
         pts = sample_surface(verts, faces, n, seed)
         if len(vis_pts):
             out["chamfer_mm"] = chamfer(pts, vis_pts)["mean_mm"]
-        if len(tf.points):
-            d, j = cKDTree(tf.points).query(pts)
-            out["near"] = float(np.mean(d <= NEAR_R_EQ * tf.r_eq[tf.label[j]]))
-        else:
-            out["near"] = 0.0
         comp = mesh_components(verts, faces)
         comp_of_sample = _sample_components(verts, faces, comp, pts)
-        owner = _component_owners(verts, faces, comp, tf.centroids, tf.r_eq)
+        if len(tf.points):
+            d, j = cKDTree(tf.points).query(pts)
+            r_near = tf.r_eq[tf.label[j]]
+            out["near"] = float(np.mean(d <= NEAR_R_EQ * r_near))
+            voter = np.where(d <= COMPONENT_R_EQ * r_near, tf.label[j], -1)
+        else:
+            out["near"] = 0.0
+            voter = np.full(len(pts), -1)
+        owner = _component_owners(comp, comp_of_sample, voter)
     for b in vis:
         true_ratio = extent_ratio(tf.points[tf.label == b], bisector)
         vol_err, ratio = -1.0, math.nan
@@ -292,19 +297,14 @@ def _sample_components(verts, faces, comp, pts) -> np.ndarray:
     return comp[cKDTree(centres).query(pts)[1]]
 
 
-def _component_owners(verts, faces, comp, centroids, r_eq) -> dict[int, int]:
-    """``{component: index of its true bubble}``: the bubble nearest the component's
-    vertex centroid in distance / r_eq, if within :data:`COMPONENT_R_EQ` (else −1)."""
+def _component_owners(comp, comp_of_sample, voter) -> dict[int, int]:
+    """``{component: index of its true bubble, or −1}``: the true bubble most of the
+    component's surface samples lie near (``voter``: each sample's bubble when within
+    :data:`COMPONENT_R_EQ` r_eq of that bubble's surface, else −1); −1 when none is."""
     out = {}
-    verts, faces = np.asarray(verts), np.asarray(faces)
     for c in np.unique(comp):
-        cc = verts[np.unique(faces[comp == c])].mean(axis=0)
-        if len(centroids) == 0:
-            out[int(c)] = -1
-            continue
-        rel = np.linalg.norm(centroids - cc, axis=1) / r_eq
-        b = int(np.argmin(rel))
-        out[int(c)] = b if rel[b] <= COMPONENT_R_EQ else -1
+        v = voter[(comp_of_sample == c) & (voter >= 0)]
+        out[int(c)] = int(np.bincount(v).argmax()) if v.size else -1
     return out
 
 
@@ -420,9 +420,9 @@ COLUMNS = [
     ("v rel: method", ("method", "relative_error"), "low", "{:.3f}"),
     ("v rel: baseline raw", ("baseline_raw", "relative_error"), "low", "{:.3f}"),
     ("v rel: baseline smoothed", ("baseline_smoothed", "relative_error"), "low", "{:.3f}"),
-    ("|e| vx/vy/vz m/s: method", ("method", "abs_v"), "low", None),
-    ("|e| vx/vy/vz: raw", ("baseline_raw", "abs_v"), "low", None),
-    ("|e| vx/vy/vz: smoothed", ("baseline_smoothed", "abs_v"), "low", None),
+    ("abs err vx/vy/vz m/s: method", ("method", "abs_v"), "low", None),
+    ("abs err vx/vy/vz: raw", ("baseline_raw", "abs_v"), "low", None),
+    ("abs err vx/vy/vz: smoothed", ("baseline_smoothed", "abs_v"), "low", None),
     ("precision", ("detection", "precision"), "high", "{:.3f}"),
     ("recall", ("detection", "recall"), "high", "{:.3f}"),
     ("Chamfer mm", ("chamfer_mm",), "low", "{:.3f}"),
@@ -662,7 +662,7 @@ def run_accuracy_bench(
         # One session at a time, so that a run stopped early leaves whole sessions.
         for s in names:
             cmd = [sys.executable, "-m", "surfphase", "run", "--campaign", str(run_dir)]
-            cmd += ["--cores", str(cores), f"results/{s}/evaluate/metrics.json"]
+            cmd += ["--cores", str(cores), "--session", s, "evaluate"]
             log("running: " + " ".join(cmd))
             rc = subprocess.call(cmd, env={**os.environ, "PYTHONUNBUFFERED": "1"})
             if rc:
