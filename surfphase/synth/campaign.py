@@ -7,12 +7,19 @@ Layout under ``out`` (paths in the TSVs are relative to the TSV's folder)::
     rigs.tsv               rig, board, cam0, cam1 (calibration image folders)
     board.yaml             ChArUco board (charuco.board_yaml_dict())
     synth.json             settings, merges and timings of this run (informative)
-    rig01/calib/<cam>/poseNNN.png      calibration images (surfphase.synth.charuco)
+    rig01/calib/<cam>/poseNNN.png      calibration images (surfphase.synth.charuco);
+                                       pose000.png is the lab-frame reference image
     <session>/<cam>/000000.png …       raw input videos: native size, true distortion,
                                        8-bit PNG (16-bit with bit_depth=16)
     <session>/gt/cameras.json          all true cameras (cam0/cam1 native with distortion;
                                        mid, orbit01..11 at fit size, no distortion),
                                        top-level "fps" and "fit_scale"
+
+The ``bench`` preset (:data:`BENCH_SESSIONS`) differs: one rig per session
+(``rigNN/calib/``), each session's videos in its own container (``<cam>.mp4``,
+``<cam>.avi``, ``<cam>.tif``, ``<cam>.cih`` + ``.mraw``; :func:`write_video`), frames of
+its own size (W×H), bit depth, frame rate, backlight, noise and blur, fit scale
+:data:`BENCH_FIT_SCALE` and held-out views :data:`BENCH_HELDOUT` only; no clips.
     <session>/gt/bubbles.csv           frame, bubble, x, y, z (m), vx, vy, vz (m/s), r_eq (m)
     <session>/gt/merges.csv            t (s), frame (first frame showing the merged bubble),
                                        parent_a, parent_b, merged (bubble ids)
@@ -373,8 +380,10 @@ def write_campaign(
 
     Args:
         out: campaign folder; must not exist or be empty, unless ``overwrite``.
-        preset: ``"demo"`` (2 sessions, 24 frames at 1500 fps, native 512, 8 clips)
-            or ``"tiny"`` (1 session, 6 frames, native 256, 2 clips, coarse meshes).
+        preset: ``"demo"`` (2 sessions, 24 frames at 1500 fps, native 512, 8 clips),
+            ``"tiny"`` (1 session, 6 frames, native 256, 2 clips, coarse meshes) or
+            ``"bench"`` (:data:`BENCH_SESSIONS`, 24 frames each; ``sessions`` takes the
+            first N; fps, native, bubbles and bit_depth are set per session).
         seed: everything is deterministic in it.
         overrides: ``sessions``, ``frames``, ``fps``, ``native``, ``bubbles``,
             ``clips``, ``clip_frames``, ``mesh_spacing`` (m), ``bit_depth`` (8/16),
