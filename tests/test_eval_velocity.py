@@ -165,3 +165,68 @@ def test_compare_to_reference_hand_case():
     assert res["relative_error_y"] == pytest.approx(0.25)
     assert res["mean_abs_error_y_mps"] == pytest.approx(0.5)
     assert np.allclose(rows.plane_vz, 0)
+
+
+def test_smoothed_velocity_is_exact_on_polynomials_and_holds_across_fps():
+    """Savitzky–Golay of order 2 differentiates a quadratic track exactly (ends too, by
+    its interpolating fit); the window is in seconds, so 2000 fps uses twice the frames
+    of 1000 fps; noise is averaged down against plain finite differences."""
+    rng = np.random.default_rng(0)
+    for fps in (1000.0, 2000.0):
+        n = int(0.02 * fps)
+        idx = np.arange(n)
+        t = idx / fps
+        x = np.stack([0.1 * t, 0.2 * t + 3.0 * t**2, -0.05 * t], axis=1)
+        v_true = np.stack([np.full(n, 0.1), 0.2 + 6.0 * t, np.full(n, -0.05)], axis=1)
+        keys = np.ones(n, dtype=int)
+        v = baseline.smoothed_velocity(keys, idx, t, x, fps, window_s=0.007, order=2)
+        np.testing.assert_allclose(v, v_true, atol=1e-9)
+        noisy = x + rng.normal(0, 5e-6, x.shape)
+        e_fd = np.abs(baseline.finite_difference(keys, idx, t, noisy) - v_true).mean()
+        e_sg = np.abs(
+            baseline.smoothed_velocity(keys, idx, t, noisy, fps, 0.007, 2) - v_true
+        ).mean()
+        assert e_sg < 0.5 * e_fd
+    # The window in frames: round(window_s·fps) made odd; compare with scipy directly.
+    from scipy.signal import savgol_filter
+
+    fps, n = 2000.0, 40
+    idx = np.arange(n)
+    y = np.sin(idx / 5.0)[:, None]
+    v = baseline.smoothed_velocity(np.zeros(n), idx, idx / fps, y, fps, 0.007, 3)
+    ref = savgol_filter(y[:, 0], 15, 3, deriv=1, delta=1 / fps, mode="interp")
+    np.testing.assert_allclose(v[:, 0], ref, rtol=1e-12)
+
+
+def test_smoothed_velocity_keeps_tracks_and_gaps_apart():
+    fps = 1000.0
+    # Bubble 1: frames 0–9 then 20–22 (a gap), bubble 2: frames 0–1 (too short: FD).
+    idx = np.r_[np.arange(10), np.arange(20, 23), [0, 1]]
+    keys = np.r_[np.ones(13, dtype=int), [2, 2]]
+    t = idx / fps
+    x = np.where(keys == 1, 0.3 * t, -0.1 * t + 5.0)[:, None]
+    x[10:13] += 1.0  # a jump across the gap must not leak into either run
+    v = baseline.smoothed_velocity(keys, idx, t, x, fps, window_s=0.005, order=2)
+    np.testing.assert_allclose(v[:13, 0], 0.3, atol=1e-9)
+    np.testing.assert_allclose(v[13:, 0], -0.1, atol=1e-9)
+    with pytest.raises(ValueError, match="order"):
+        baseline.smoothed_velocity(keys, idx, t, x, fps, 0.005, 0)
+
+
+def test_relative_gate_matching_and_component_errors():
+    mm = 1e-3
+    pred = pd.DataFrame(
+        [[0, 1, 0.4 * mm, 0, 0, 0.1, 0.3, 0.0], [0, 2, 10.6 * mm, 0, 0, 0, 0.2, 0.1]],
+        columns=COLS,
+    )
+    truth = pd.DataFrame(
+        [[0, 5, 0, 0, 0, 0.0, 0.2, 0.0, 1.0 * mm], [0, 6, 10 * mm, 0, 0, 0, 0.2, 0, 1.0 * mm]],
+        columns=[*COLS, "r_eq"],
+    )
+    m = velocity.match_bubbles_relative(pred, truth, gate_r_eq=0.5)
+    assert list(zip(m.bubble, m.gt_bubble, strict=True)) == [(1, 5)]  # 0.6 r_eq: gated out
+    e = velocity.component_errors(m)
+    assert e == pytest.approx({"vx": 0.1, "vy": 0.1, "vz": 0.0})
+    m2 = velocity.match_bubbles_relative(pred, truth, gate_r_eq=0.7)
+    assert len(m2) == 2
+    assert velocity.component_errors(m2)["vz"] == pytest.approx(0.05)

@@ -312,3 +312,100 @@ def test_cli_small_campaign_is_deterministic(tmp_path):
                 "session01/gt/views/orbit05/000000.png", "clips/clip000/000001.png",
                 "rig01/calib/cam0/pose001.png"):  # fmt: skip
         assert (out / rel).read_bytes() == (again / rel).read_bytes(), rel
+
+
+# --- the bench preset ---------------------------------------------------------------------
+
+
+def test_bench_preset_spans_what_labs_vary():
+    from surfphase.synth.campaign import BENCH_SESSIONS, CONTAINERS
+
+    s = BENCH_SESSIONS
+    assert len(s) >= 8
+    angles = [x["angle"] for x in s]
+    elev = [x["elevation"] for x in s]
+    assert min(angles) <= 25 and max(angles) >= 60 and min(elev) == 0 and max(elev) >= 10
+    assert any(w == h for w, h in (x["size"] for x in s))
+    assert any(w != h for w, h in (x["size"] for x in s))
+    fps = [x["fps"] for x in s]
+    assert min(fps) <= 1000 and max(fps) >= 10000
+    radii = [r for x in s for r in x["radius_mm"]]
+    assert min(radii) <= 0.3 and max(radii) >= 1.5
+    assert {x["shape"] for x in s} >= {"sphere", "spheroid", "tilted"}
+    assert {x["merge"] for x in s} == {True, False}
+    assert {x["bit_depth"] for x in s} == {8, 12, 16}
+    assert len({x["backlight"] for x in s}) >= 4 and len({x["noise"] for x in s}) == 3
+    assert {x["container"] for x in s} >= set(CONTAINERS) - {"png"}
+    assert all(x["bit_depth"] == 8 for x in s if x["container"] in ("mp4", "avi"))
+    assert all(x["bit_depth"] != 12 or x["container"] == "mraw" for x in s)
+    with pytest.raises(ValueError, match="per session"):
+        campaign_settings("bench", fps=500.0)
+
+
+def test_tilted_bubbles_are_spheroids_off_the_vertical():
+    from surfphase.synth.bubbles import TILT_DEG
+
+    scene = BubbleScene(5, 0.01, bubbles=3, shape="tilted", radius_range=(0.6e-3, 1.0e-3))
+    for b in scene.by_id.values():
+        ax = b.modes[0].axis
+        tilt = np.degrees(np.arccos(abs(ax[1]) / np.linalg.norm(ax)))
+        assert TILT_DEG[0] - 1e-9 <= tilt <= TILT_DEG[1] + 1e-9
+        assert b.modes[0].mean_free < -0.05  # oblate about the tilted axis
+        assert all(np.allclose(m.axis, ax) for m in b.modes)  # modes about that axis too
+        if not b.parents:
+            assert 0.6e-3 <= b.r_detach <= 1.0e-3
+    sphere = BubbleScene(5, 0.01, bubbles=3, shape="sphere")
+    assert all(not np.any(b.mode_amplitudes(0.005)) for b in sphere.by_id.values())
+
+
+@pytest.fixture(scope="module")
+def bench2(tmp_path_factory):
+    out = tmp_path_factory.mktemp("synth") / "bench"
+    write_campaign(out, preset="bench", seed=SEED, sessions=3, frames=3)
+    return out
+
+
+def test_bench_campaign_containers_read_back_independently(bench2):
+    """Every container read by another reader than the project's: tifffile (LZW tag),
+    pyMRAW (12-bit packed), OpenCV for the MPEG-4 video; pixels match the project's
+    readers, and each rig has its lab-frame reference image."""
+    import pyMRAW
+    import tifffile
+
+    from surfphase.synth.campaign import BENCH_SESSIONS
+    from surfphase.video import open_video
+
+    sessions = pd.read_csv(bench2 / "sessions.tsv", sep="\t", keep_default_na=False)
+    rigs = pd.read_csv(bench2 / "rigs.tsv", sep="\t")
+    assert list(sessions.rig) == list(rigs.rig) == ["rig01", "rig02", "rig03"]
+    board = yaml.safe_load((bench2 / "board.yaml").read_text())
+    for r in rigs.itertuples():
+        for cam in (r.cam0, r.cam1):
+            assert (bench2 / cam / board["reference_image"]).is_file()
+    for row, spec in zip(sessions.itertuples(), BENCH_SESSIONS, strict=False):
+        w, h = spec["size"]
+        assert float(row.fps) == spec["fps"]
+        path = bench2 / row.cam0
+        ours = np.stack(list(open_video(path).read(range(3))))
+        assert ours.shape == (3, h, w)
+        masks = np.load(bench2 / row.gt / "masks" / "cam0.npy")
+        assert masks.shape == (3, h, w)
+        if spec["container"] == "tiff-lzw":
+            with tifffile.TiffFile(path) as tif:
+                assert tif.pages[0].compression == tifffile.COMPRESSION.LZW
+                assert np.array_equal(tif.asarray(), ours) and ours.dtype == np.uint16
+        elif spec["container"] == "mraw":
+            data, info = pyMRAW.load_video(str(path))
+            assert int(info["Color Bit"]) == spec["bit_depth"] == 12
+            assert np.array_equal(np.asarray(data), ours) and ours.max() < 4096
+            assert ours.max() > 2000  # the backlight uses the 12-bit range
+        elif spec["container"] == "mp4":
+            cap = cv2.VideoCapture(str(path))
+            ok, frame = cap.read()
+            cap.release()
+            assert ok and np.array_equal(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), ours[0])
+        # The images are backlit shadowgraphs: bubbles (true mask) darker than the rest.
+        full = 2.0 ** spec["bit_depth"] - 1
+        lit = ours[masks < 0].mean() / full
+        dark = ours[masks >= 0].mean() / full
+        assert lit > 0.3 and dark < 0.6 * lit

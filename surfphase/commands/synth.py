@@ -11,7 +11,12 @@ from pathlib import Path
 
 
 def _add_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", default="demo", choices=["demo", "tiny"], help="base settings")
+    p.add_argument(
+        "--preset",
+        default="demo",
+        choices=["demo", "tiny", "bench"],
+        help="base settings (bench: the varied sessions of `surfphase bench accuracy`)",
+    )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--sessions", type=int, help="number of capture sessions")
     p.add_argument("--frames", type=int, help="frames per session")

@@ -126,3 +126,63 @@ def baseline_bubbles(
     )  # fmt: skip
     tab[["vx", "vy", "vz"]] = vel if len(tab) else np.zeros((0, 3))
     return tab[BUBBLE_COLUMNS].sort_values(["frame", "bubble"]).reset_index(drop=True)
+
+
+def smoothed_velocity(
+    keys: np.ndarray,
+    index: np.ndarray,
+    times: np.ndarray,
+    values: np.ndarray,
+    fps: float,
+    window_s: float,
+    order: int,
+) -> np.ndarray:
+    """Velocity along each track from a moving polynomial fit (Savitzky–Golay, ``deriv=1``).
+
+    The track smoothing of particle-tracking codes (MyPTV; Lüthi et al. 2005): along
+    each key's runs of consecutive indices, ``scipy.signal.savgol_filter`` of order
+    ``order`` over a window of ``window_s`` seconds — ``round(window_s·fps)`` frames,
+    made odd, at least ``order + 2`` — so one setting holds across frame rates. A run
+    shorter than the window uses the longest odd window it holds (``mode="interp"``: the
+    polynomial fitted to the run's first / last window gives its ends); a run of
+    ``order + 1`` samples or fewer, and ``window_s = 0``, fall back to
+    :func:`finite_difference`.
+
+    Args:
+        keys, index, times, values: as :func:`finite_difference` ((N,), (N,), (N,) s,
+            (N, D)); ``times`` must be ``index / fps`` (uniform sampling).
+        fps: frames per second.
+        window_s: window length, seconds (0: no smoothing).
+        order: polynomial order (≥ 1).
+
+    Returns:
+        (N, D) derivative of ``values`` per second.
+    """
+    from scipy.signal import savgol_filter
+
+    if order < 1:
+        raise ValueError(f"smoothing: polynomial order must be ≥ 1, got {order}")
+    if window_s < 0 or fps <= 0:
+        raise ValueError(f"smoothing: need window_s ≥ 0 and fps > 0, got {window_s}, {fps}")
+    out = finite_difference(keys, index, times, values)
+    if window_s == 0:
+        return out
+    keys, index = np.asarray(keys), np.asarray(index, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64).reshape(len(keys), -1)
+    want = max(int(round(window_s * fps)), order + 2)
+    want += 1 - want % 2
+    order_idx = np.lexsort((index, keys))
+    k, i = keys[order_idx], index[order_idx]
+    # Run boundaries: a new key or a gap in the index.
+    start = np.r_[True, (k[1:] != k[:-1]) | (i[1:] != i[:-1] + 1)]
+    bounds = np.r_[np.flatnonzero(start), len(order_idx)]
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        n = b - a
+        win = min(want, n if n % 2 else n - 1)
+        if win <= order + 1:
+            continue
+        rows = order_idx[a:b]
+        out[rows] = savgol_filter(
+            values[rows], win, order, deriv=1, delta=1.0 / fps, axis=0, mode="interp"
+        )
+    return out

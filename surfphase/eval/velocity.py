@@ -78,3 +78,54 @@ def velocity_errors(matches: pd.DataFrame) -> dict:
         "mean_speed_gt_mps": float(speed.mean()),
         "matched": int(len(m)),
     }
+
+
+def match_bubbles_relative(
+    pred: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = 0.5
+) -> pd.DataFrame:
+    """:func:`match_bubbles` with a gate relative to each true bubble's size.
+
+    Per frame, predicted and true bubbles are paired one-to-one by the Hungarian
+    algorithm on ``|c − c_gt| / r_eq`` (the true bubble's equivalent radius); pairs with
+    a ratio above ``gate_r_eq`` are left unmatched. ``truth`` needs an ``r_eq`` column (m).
+
+    Returns:
+        Columns :data:`MATCH_COLUMNS` plus ``gt_r_eq`` (m).
+    """
+    if "r_eq" not in truth.columns:
+        raise ValueError("relative matching needs the truth's r_eq column (m)")
+    rows = []
+    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
+    for f, p in pred.groupby("frame", sort=True):
+        g = truth[truth["frame"] == f]
+        p = p[np.isfinite(p[xyz].to_numpy(np.float64)).all(axis=1)]
+        g = g[np.isfinite(g[xyz].to_numpy(np.float64)).all(axis=1) & (g["r_eq"] > 0)]
+        if p.empty or g.empty:
+            continue
+        d = np.linalg.norm(
+            p[xyz].to_numpy(np.float64)[:, None] - g[xyz].to_numpy(np.float64)[None], axis=-1
+        )
+        r = g["r_eq"].to_numpy(np.float64)
+        cost = d / r[None]
+        for i, j in zip(*linear_sum_assignment(cost), strict=True):
+            if cost[i, j] > gate_r_eq:
+                continue
+            v = p[vel].to_numpy(np.float64)[i]
+            gv = g[vel].to_numpy(np.float64)[j]
+            rows.append(
+                [int(f), int(p["bubble"].iloc[i]), int(g["bubble"].iloc[j]), float(d[i, j]),
+                 *v, *gv, float(np.linalg.norm(v - gv)), float(r[j])]
+            )  # fmt: skip
+    return pd.DataFrame(rows, columns=[*MATCH_COLUMNS, "gt_r_eq"])
+
+
+def component_errors(matches: pd.DataFrame) -> dict:
+    """Mean ``|v_k − v_gt,k|`` (m/s) per component ``k`` = x, y, z over the matched
+    bubble-frames whose velocities are both known: ``{"vx": …, "vy": …, "vz": …}``."""
+    m = matches[np.isfinite(matches["abs_error_mps"].to_numpy(np.float64))]
+    if m.empty:
+        return {k: float("nan") for k in ("vx", "vy", "vz")}
+    return {
+        k: float(np.abs(m[k].to_numpy(np.float64) - m[f"gt_{k}"].to_numpy(np.float64)).mean())
+        for k in ("vx", "vy", "vz")
+    }

@@ -67,6 +67,10 @@ Y_EXIT = 0.0175
 MODE_DEGREES = (2, 2, 3)
 #: Time step of the merge (contact) search, seconds.
 CONTACT_DT = 1.0e-4
+#: Shapes of :class:`BubbleScene` (see its ``shape`` argument).
+SHAPES = ("default", "sphere", "spheroid", "tilted")
+#: Range of the tilt (degrees off the vertical) of a ``"tilted"`` bubble's axis.
+TILT_DEG = (20.0, 40.0)
 
 
 def lamb_frequency(degree: int, radius: float) -> float:
@@ -337,6 +341,14 @@ class BubbleScene:
         force_merge: arrange a wake-capture merge inside the clip (``forced_merge``
             tells whether it could be arranged).
         region: (x, z) half-widths (m) of the plate area holding nucleation sites.
+        radius_range: (min, max) detachment radius, m; each site's mean radius is drawn
+            from the middle half of the range (default 0.75–1.25 mm).
+        shape: ``"default"`` (the three modes of the module docstring), ``"sphere"``
+            (no shape modes), ``"spheroid"`` (P2 about the vertical only: an oblate
+            spheroid while rising, oscillating), ``"tilted"`` (a spheroid whose axis is
+            tilted :data:`TILT_DEG` off the vertical, with its P2 and P3 oscillations
+            about that tilted axis — a bubble an axisymmetric-about-vertical prior does
+            not fit).
     """
 
     def __init__(
@@ -346,11 +358,19 @@ class BubbleScene:
         bubbles: int = 5,
         force_merge: bool = False,
         region: tuple[float, float] = (0.0035, 0.0015),
+        radius_range: tuple[float, float] = (0.5e-3, 1.5e-3),
+        shape: str = "default",
     ):
         if duration <= 0:
             raise ValueError(f"scene duration must be positive, got {duration}")
         if bubbles < 1:
             raise ValueError(f"bubble count must be at least 1, got {bubbles}")
+        if shape not in SHAPES:
+            raise ValueError(f"unknown bubble shape {shape!r}; choose from {SHAPES}")
+        if not 0 < radius_range[0] <= radius_range[1]:
+            raise ValueError(f"radius range must be 0 < min <= max (m), got {radius_range}")
+        self.shape = shape
+        self.radius_range = (float(radius_range[0]), float(radius_range[1]))
         self.seed = int(seed)
         self.duration = float(duration)
         self.rng = np.random.default_rng([self.seed, 7101])
@@ -403,7 +423,7 @@ class BubbleScene:
         f2, f3 = lamb_frequency(2, r), lamb_frequency(3, r)
         k = 2.5 if merged else 1.0  # coalescence excites strong oscillations
         att = 0.0 if merged else 1.0
-        return (
+        modes = (
             Mode(2, up, att * rng.uniform(0.04, 0.08), att * 0.015, -rng.uniform(0.04, 0.07),
                  k * rng.uniform(0.02, 0.035), f2 * rng.uniform(0.95, 1.05), rng.uniform(0, 2 * np.pi)),
             Mode(2, tilt, 0.0, att * 0.01, 0.0, k * rng.uniform(0.015, 0.03),
@@ -411,10 +431,29 @@ class BubbleScene:
             Mode(3, ax3, 0.0, att * 0.008, 0.0, k * rng.uniform(0.008, 0.018),
                  f3 * rng.uniform(0.95, 1.05), rng.uniform(0, 2 * np.pi)),
         )  # fmt: skip
+        if self.shape == "default":
+            return modes
+        off = Mode(2, up, 0.0, 0.0, 0.0, 0.0, f2, 0.0)
+        if self.shape == "sphere":
+            return (off, replace(off, axis=tilt), replace(off, degree=3, axis=ax3, freq=f3))
+        p2 = modes[0]
+        if self.shape == "spheroid":
+            # Stronger flattening than the default (rising mm bubbles: aspect 1.1–1.4).
+            spheroid = replace(p2, mean_free=-rng.uniform(0.06, 0.12))
+            return (spheroid, replace(off, axis=tilt), replace(off, degree=3, axis=ax3, freq=f3))
+        # "tilted": the spheroid's axis and both oscillations about a tilted axis.
+        az = rng.uniform(0, 2 * np.pi)
+        tl = np.deg2rad(rng.uniform(*TILT_DEG))
+        axis = np.array([np.sin(tl) * np.cos(az), np.cos(tl), np.sin(tl) * np.sin(az)])
+        return (
+            replace(p2, axis=axis, mean_att=p2.mean_att, mean_free=-rng.uniform(0.06, 0.12)),
+            replace(modes[1], axis=axis),
+            replace(modes[2], axis=axis),
+        )
 
     def _new_bubble(self, site: np.ndarray, t_birth: float, r_mean: float) -> Bubble:
         rng = self.rng
-        rd = float(np.clip(r_mean * rng.uniform(0.85, 1.15), 0.5e-3, 1.5e-3))
+        rd = float(np.clip(r_mean * rng.uniform(0.85, 1.15), *self.radius_range))
         t_grow = 0.012 * (rd / 1e-3) ** 2 * rng.uniform(0.8, 1.2)
         r0 = 0.15e-3
         u = terminal_speed(rd)
@@ -439,7 +478,8 @@ class BubbleScene:
         return b
 
     def _schedule_site(self, site: np.ndarray, per_site: float) -> list[Bubble]:
-        r_mean = self.rng.uniform(0.75e-3, 1.25e-3)
+        lo, hi = self.radius_range
+        r_mean = self.rng.uniform(lo + 0.25 * (hi - lo), hi - 0.25 * (hi - lo))
         # A bubble is in the column for about (growth + crossing) seconds.
         in_view = 0.012 * (r_mean / 1e-3) ** 2 + Y_EXIT / terminal_speed(r_mean)
         period = in_view / max(per_site, 0.3)

@@ -7,12 +7,19 @@ Layout under ``out`` (paths in the TSVs are relative to the TSV's folder)::
     rigs.tsv               rig, board, cam0, cam1 (calibration image folders)
     board.yaml             ChArUco board (charuco.board_yaml_dict())
     synth.json             settings, merges and timings of this run (informative)
-    rig01/calib/<cam>/poseNNN.png      calibration images (surfphase.synth.charuco)
+    rig01/calib/<cam>/poseNNN.png      calibration images (surfphase.synth.charuco);
+                                       pose000.png is the lab-frame reference image
     <session>/<cam>/000000.png …       raw input videos: native size, true distortion,
                                        8-bit PNG (16-bit with bit_depth=16)
     <session>/gt/cameras.json          all true cameras (cam0/cam1 native with distortion;
                                        mid, orbit01..11 at fit size, no distortion),
                                        top-level "fps" and "fit_scale"
+
+The ``bench`` preset (:data:`BENCH_SESSIONS`) differs: one rig per session
+(``rigNN/calib/``), each session's videos in its own container (``<cam>.mp4``,
+``<cam>.avi``, ``<cam>.tif``, ``<cam>.cih`` + ``.mraw``; :func:`write_video`), frames of
+its own size (W×H), bit depth, frame rate, backlight, noise and blur, fit scale
+:data:`BENCH_FIT_SCALE` and held-out views :data:`BENCH_HELDOUT` only; no clips.
     <session>/gt/bubbles.csv           frame, bubble, x, y, z (m), vx, vy, vz (m/s), r_eq (m)
     <session>/gt/merges.csv            t (s), frame (first frame showing the merged bubble),
                                        parent_a, parent_b, merged (bubble ids)
@@ -40,21 +47,67 @@ import tempfile
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
+import tifffile
 import yaml
 
 from surfphase.cameras import save_cameras
-from surfphase.io import save_npy
+from surfphase.io import atomic_path, save_npy
+from surfphase.labformats import write_mraw
 from surfphase.synth import charuco, shadowgraph
 from surfphase.synth.bubbles import BubbleScene
 from surfphase.synth.groundtruth import bubble_table, frame_truth, mesh_volume, write_ply
 from surfphase.synth.monoclips import write_clip, write_png
-from surfphase.synth.rig import default_rig
+from surfphase.synth.rig import default_rig, eye_height
 
 #: Downscale from native raw frames to the fit size (the workflow's ingest scale).
 FIT_SCALE = 0.25
 INPUTS = ("cam0", "cam1")
+
+#: The ``bench`` preset's sessions (``surfphase bench accuracy``): what labs vary.
+#: ``angle`` (degrees between the input cameras about the vertical), ``elevation``
+#: (degrees the cameras look down at the scene centre; 0 = the plate seen level, edge
+#: on), ``size`` (native width, height, px), ``fps``, ``bubbles`` (mean number in the
+#: column), ``merge`` (a merge inside the clip), ``shape`` (:data:`bubbles.SHAPES`),
+#: ``radius_mm`` (detachment radius range), ``backlight`` (:data:`shadowgraph.BACKLIGHTS`),
+#: ``noise`` (:data:`NOISE` level), ``blur`` (optics σ, native px), ``bit_depth`` (8, 12,
+#: 16) and ``container`` (:data:`CONTAINERS`).
+BENCH_SESSIONS: tuple[dict, ...] = (
+    dict(angle=25.0, elevation=0.0, size=(256, 256), fps=1000.0, bubbles=3, merge=True,
+         shape="sphere", radius_mm=(0.6, 1.2), backlight="smooth", noise="low", blur=0.6,
+         bit_depth=8, container="mp4"),
+    dict(angle=35.0, elevation=4.0, size=(320, 240), fps=2000.0, bubbles=3, merge=False,
+         shape="spheroid", radius_mm=(0.8, 1.5), backlight="gradient", noise="mid", blur=0.8,
+         bit_depth=16, container="tiff-lzw"),
+    dict(angle=45.0, elevation=7.0, size=(240, 320), fps=5000.0, bubbles=4, merge=True,
+         shape="tilted", radius_mm=(0.6, 1.3), backlight="stripes", noise="mid", blur=1.0,
+         bit_depth=12, container="mraw"),
+    dict(angle=60.0, elevation=10.0, size=(256, 256), fps=10000.0, bubbles=4, merge=False,
+         shape="sphere", radius_mm=(0.3, 0.7), backlight="speckle", noise="low", blur=0.5,
+         bit_depth=8, container="tiff"),
+    dict(angle=30.0, elevation=9.0, size=(320, 256), fps=3000.0, bubbles=4, merge=True,
+         shape="spheroid", radius_mm=(0.5, 1.1), backlight="dim", noise="high", blur=0.8,
+         bit_depth=16, container="mraw"),
+    dict(angle=50.0, elevation=2.0, size=(288, 224), fps=1500.0, bubbles=3, merge=False,
+         shape="tilted", radius_mm=(0.7, 1.5), backlight="smooth", noise="high", blur=1.3,
+         bit_depth=8, container="avi"),
+    dict(angle=40.0, elevation=10.0, size=(224, 224), fps=7500.0, bubbles=3, merge=True,
+         shape="default", radius_mm=(0.5, 1.5), backlight="gradient", noise="low", blur=0.7,
+         bit_depth=12, container="mraw"),
+    dict(angle=55.0, elevation=5.0, size=(320, 320), fps=1000.0, bubbles=5, merge=True,
+         shape="tilted", radius_mm=(0.4, 1.0), backlight="stripes", noise="mid", blur=1.0,
+         bit_depth=16, container="tiff-lzw"),
+)  # fmt: skip
+#: Sensor noise levels of the bench sessions: (full well electrons, read noise fraction).
+NOISE = {"low": (8000.0, 0.002), "mid": (2500.0, 0.003), "high": (700.0, 0.008)}
+#: Containers of a session's input videos: a folder of PNGs, multi-page TIFF
+#: (uncompressed or LZW), Photron MRAW + CIH (8, 12 packed or 16 bit), and 8-bit video
+#: (MPEG-4 Part 2 in .mp4, lossy; FFV1 in .avi, lossless).
+CONTAINERS = ("png", "tiff", "tiff-lzw", "mraw", "mp4", "avi")
+#: Frame rate written in the header of video containers (a playback rate, as labs export).
+VIDEO_PLAYBACK_FPS = 30.0
 
 PRESETS: dict[str, dict] = {
     "demo": {
@@ -81,7 +134,27 @@ PRESETS: dict[str, dict] = {
         "bit_depth": 8,
         "heldout": True,
     },
+    # Varied sessions (BENCH_SESSIONS), one rig each, refinement off: no clips; two
+    # held-out views (mid-way, and 90° from cam0: a side view of the depth axis).
+    "bench": {
+        "sessions": len(BENCH_SESSIONS),
+        "frames": 24,
+        "fps": 0.0,  # per session
+        "native": 0,  # per session
+        "bubbles": 0,  # per session
+        "clips": 0,
+        "clip_frames": 1,
+        "mesh_spacing": 5e-5,
+        "bit_depth": 0,  # per session
+        "heldout": True,
+    },
 }
+#: Settings the bench preset fixes per session (BENCH_SESSIONS), not overridable.
+_BENCH_FIXED = ("fps", "native", "bubbles", "bit_depth")
+#: Fit scale of the bench preset (its held-out views' size; the workflow's ingest scale).
+BENCH_FIT_SCALE = 0.5
+#: Held-out cameras rendered by the bench preset.
+BENCH_HELDOUT = ("mid", "orbit03")
 
 
 def campaign_settings(preset: str = "demo", **overrides) -> dict:
@@ -94,7 +167,20 @@ def campaign_settings(preset: str = "demo", **overrides) -> dict:
             continue
         if k not in cfg:
             raise ValueError(f"unknown synth option {k!r}; known: {sorted(cfg)}")
+        if preset == "bench" and k in _BENCH_FIXED:
+            raise ValueError(
+                f"synth --preset bench: {k} is set per session (BENCH_SESSIONS), not overridable"
+            )
         cfg[k] = type(cfg[k])(v)
+    if preset == "bench":
+        if not 1 <= cfg["sessions"] <= len(BENCH_SESSIONS):
+            raise ValueError(
+                f"synth --preset bench: sessions must be 1..{len(BENCH_SESSIONS)}, "
+                f"got {cfg['sessions']}"
+            )
+        if cfg["frames"] < 2:
+            raise ValueError(f"synth: bench sessions need ≥ 2 frames, got {cfg['frames']}")
+        return cfg
     if cfg["sessions"] < 1 or cfg["frames"] < 1 or cfg["clips"] < 0 or cfg["clip_frames"] < 1:
         raise ValueError(f"synth: sessions and frames must be ≥ 1 and clips ≥ 0, got {cfg}")
     if cfg["fps"] <= 0:
@@ -110,47 +196,119 @@ def campaign_settings(preset: str = "demo", **overrides) -> dict:
     return cfg
 
 
-def session_scene(seed: int, index: int, cfg: dict) -> BubbleScene:
-    """The scene of session ``index`` (0-based). Session 0 always contains a merge."""
-    duration = cfg["frames"] / cfg["fps"]
-    want_merge = index == 0
+def session_scene(seed: int, index: int, cfg: dict, spec: dict | None = None) -> BubbleScene:
+    """The scene of session ``index`` (0-based). Session 0 always contains a merge;
+    with a bench ``spec`` (:data:`BENCH_SESSIONS`), the sessions whose ``merge`` is set
+    do, and the others have none."""
+    duration = cfg["frames"] / (spec["fps"] if spec else cfg["fps"])
+    want_merge = bool(spec["merge"]) if spec else index == 0
+    extra = {}
+    if spec:
+        lo, hi = spec["radius_mm"]
+        extra = {"radius_range": (lo * 1e-3, hi * 1e-3), "shape": spec["shape"]}
     for attempt in range(30):
         scene = BubbleScene(
             int(np.random.default_rng([seed, index, attempt]).integers(0, 2**31)),
             duration,
-            bubbles=cfg["bubbles"],
+            bubbles=spec["bubbles"] if spec else cfg["bubbles"],
             force_merge=want_merge,
+            **extra,
         )
-        if not want_merge or scene.merges():
+        if want_merge and scene.merges():
             return scene
-    raise ValueError(f"synth seed {seed}: could not arrange a merge in session 1")
+        if not want_merge and (not spec or not scene.merges()):
+            return scene
+    what = "arrange a merge" if want_merge else "avoid a merge"
+    raise ValueError(f"synth seed {seed}: could not {what} in session {index + 1}")
 
 
-def _write_session(sdir: Path, scene: BubbleScene, cfg: dict, seed: int, index: int) -> dict:
-    native, fps, frames = cfg["native"], cfg["fps"], cfg["frames"]
-    fit = int(round(native * FIT_SCALE))
-    rig = default_rig(native=native)
+def session_spec(cfg: dict, index: int) -> dict:
+    """Everything that sets session ``index`` apart: a bench spec, or the preset's own
+    (square ``native`` frames, the reference rig, smooth backlight, PNG folders)."""
+    if "native" in cfg and cfg["native"] > 0:
+        return dict(
+            angle=35.0, elevation=None, size=(cfg["native"], cfg["native"]), fps=cfg["fps"],
+            bubbles=cfg["bubbles"], merge=index == 0, shape="default", radius_mm=None,
+            backlight="smooth", noise=None, blur=0.8 * cfg["native"] / 512,
+            bit_depth=cfg["bit_depth"], container="png", fit_scale=FIT_SCALE, heldout=None,
+        )  # fmt: skip
+    return {**BENCH_SESSIONS[index], "fit_scale": BENCH_FIT_SCALE, "heldout": BENCH_HELDOUT}
+
+
+def session_rig(spec: dict) -> dict:
+    """True cameras of a session's rig (:func:`surfphase.synth.rig.default_rig`)."""
+    w, h = spec["size"]
+    kw = {"native": w, "native_height": h, "baseline_deg": spec["angle"]}
+    if spec["elevation"] is not None:
+        kw["height"] = eye_height(spec["elevation"])
+    return default_rig(**kw)
+
+
+def write_video(path_stem: Path, frames: np.ndarray, container: str, bit_depth: int, fps: float):
+    """Write (n, H, W) grey frames (uint8, or uint16 for 12/16 bit) as ``container``
+    (:data:`CONTAINERS`); returns the path the sessions sheet names (a folder or file)."""
+    n, h, w = frames.shape
+    if container == "png":
+        for f in range(n):
+            write_png(path_stem / f"{f:06d}.png", frames[f])
+        return path_stem
+    if container in ("tiff", "tiff-lzw"):
+        path = path_stem.with_suffix(".tif")
+        if bit_depth == 12:
+            raise ValueError(f"{path}: 12-bit frames are written as MRAW, not TIFF")
+        comp = "lzw" if container == "tiff-lzw" else None
+        with atomic_path(path) as tmp:
+            tifffile.imwrite(tmp, frames, photometric="minisblack", compression=comp)
+        return path
+    if container == "mraw":
+        return write_mraw(path_stem.with_suffix(".cih"), frames, bit_depth, fps)
+    if container in ("mp4", "avi"):
+        if bit_depth != 8:
+            raise ValueError(f"{path_stem}: video containers hold 8-bit frames only")
+        path = path_stem.with_suffix("." + container)
+        fourcc = cv2.VideoWriter_fourcc(*("mp4v" if container == "mp4" else "FFV1"))
+        # High-speed recordings are exported at a playback rate; the sheet has the fps.
+        writer = cv2.VideoWriter(str(path), fourcc, VIDEO_PLAYBACK_FPS, (w, h), True)
+        if not writer.isOpened():
+            raise OSError(f"{path}: OpenCV cannot write {container} video")
+        for f in range(n):
+            writer.write(cv2.cvtColor(frames[f], cv2.COLOR_GRAY2BGR))
+        writer.release()
+        return path
+    raise ValueError(f"unknown container {container!r}; choose from {CONTAINERS}")
+
+
+def _write_session(
+    sdir: Path, scene: BubbleScene, cfg: dict, seed: int, index: int, spec: dict
+) -> dict:
+    fps, frames, bits = spec["fps"], cfg["frames"], spec["bit_depth"]
+    (width, height), fit_scale = spec["size"], spec["fit_scale"]
+    rig = session_rig(spec)
     gt_cams = {n: rig[n] for n in INPUTS}
     for name, cam in rig.items():
         if name not in INPUTS:
-            gt_cams[name] = cam.scaled(FIT_SCALE)
+            gt_cams[name] = cam.scaled(fit_scale)
     held = [n for n in gt_cams if n not in INPUTS] if cfg["heldout"] else []
+    if spec["heldout"] is not None:
+        held = [n for n in held if n in spec["heldout"]]
     gt = sdir / "gt"
-    save_cameras(gt / "cameras.json", gt_cams, fps=fps, fit_scale=FIT_SCALE)
+    save_cameras(gt / "cameras.json", gt_cams, fps=fps, fit_scale=fit_scale)
+    pattern = spec["backlight"]
+    noise = NOISE[spec["noise"]] if spec["noise"] else None
 
     rays, bgs, sizes, sigmas, names = [], [], [], [], []
     for n in INPUTS:
         cam = gt_cams[n]
         rays.append(shadowgraph.camera_rays(cam, distorted=True))
-        bgs.append(shadowgraph.background(n, cam.height, cam.width, seed=seed))
+        bgs.append(shadowgraph.background(n, cam.height, cam.width, seed=seed, pattern=pattern))
         sizes.append(None)
-        sigmas.append(0.8 * native / 512)
+        sigmas.append(spec["blur"])
         names.append(n)
     for n in held:
         cam = gt_cams[n].scaled(2.0)  # 2× supersampling, area-averaged down
         rays.append(shadowgraph.camera_rays(cam, distorted=False))
-        bgs.append(shadowgraph.background(n, cam.height, cam.width, seed=seed))
-        sizes.append((fit, fit))
+        bgs.append(shadowgraph.background(n, cam.height, cam.width, seed=seed, pattern=pattern))
+        sizes.append((gt_cams[n].width, gt_cams[n].height))
         sigmas.append(0.5)
         names.append(n)
 
@@ -158,20 +316,21 @@ def _write_session(sdir: Path, scene: BubbleScene, cfg: dict, seed: int, index: 
         if n not in INPUTS:
             ref = shadowgraph.empty_view(r, bg, size, sigma)
             write_png(gt / "views_background" / f"{n}.png", shadowgraph.quantize(ref, 16))
-    masks = {n: np.full((frames, native, native), -1, dtype=np.int32) for n in INPUTS}
+    masks = {n: np.full((frames, height, width), -1, dtype=np.int32) for n in INPUTS}
+    raw = {n: [] for n in INPUTS}
     truths, vol_err = [], []
     t_render = t_truth = 0.0
     for f in range(frames):
         state = scene.state(f / fps)
         t0 = time.perf_counter()
         rngs = [np.random.default_rng([seed, index, ci, f]) for ci in range(len(names))]
-        views = shadowgraph.render_views(state, rays, bgs, rngs, sizes, sigmas)
+        views = shadowgraph.render_views(state, rays, bgs, rngs, sizes, sigmas, noise=noise)
         for n, (img, lab, clean) in zip(names, views, strict=True):
-            q = shadowgraph.quantize(img, cfg["bit_depth"])
             if n in INPUTS:
-                write_png(sdir / n / f"{f:06d}.png", q)
+                raw[n].append(shadowgraph.quantize(img, bits))
                 masks[n][f] = lab
             else:
+                q = shadowgraph.quantize(img, bits if bits in (8, 16) else 16)
                 write_png(gt / "views" / n / f"{f:06d}.png", q)
                 write_png(gt / "views_clean" / n / f"{f:06d}.png", shadowgraph.quantize(clean, 16))
         t1 = time.perf_counter()
@@ -182,8 +341,11 @@ def _write_session(sdir: Path, scene: BubbleScene, cfg: dict, seed: int, index: 
             vol_err.append(mesh_volume(tr.verts, tr.faces) / tr.volumes.sum() - 1)
         t_truth += time.perf_counter() - t1
         t_render += t1 - t0
+    videos = {}
     for n in INPUTS:
         save_npy(gt / "masks" / f"{n}.npy", masks[n])
+        path = write_video(sdir / n, np.stack(raw[n]), spec["container"], bits, fps)
+        videos[n] = path.relative_to(sdir.parent).as_posix()
     table = bubble_table(truths, fps)
     table.to_csv(gt / "bubbles.csv", index=False, float_format="%.12g", na_rep="nan")
     # First frame at which the merged bubble exists (same test as Bubble.alive).
@@ -197,6 +359,9 @@ def _write_session(sdir: Path, scene: BubbleScene, cfg: dict, seed: int, index: 
     per_frame = table.groupby("frame").size().reindex(range(frames), fill_value=0)
     visible = [int(np.unique(m[m >= 0]).size) for m in masks["cam0"]]
     return {
+        "videos": videos,
+        "spec": {k: v for k, v in spec.items() if k != "heldout"},
+        "heldout": held,
         "merges": merges,
         "bubbles_per_frame": per_frame.tolist(),
         "visible_in_cam0_per_frame": visible,
@@ -215,8 +380,10 @@ def write_campaign(
 
     Args:
         out: campaign folder; must not exist or be empty, unless ``overwrite``.
-        preset: ``"demo"`` (2 sessions, 24 frames at 1500 fps, native 512, 8 clips)
-            or ``"tiny"`` (1 session, 6 frames, native 256, 2 clips, coarse meshes).
+        preset: ``"demo"`` (2 sessions, 24 frames at 1500 fps, native 512, 8 clips),
+            ``"tiny"`` (1 session, 6 frames, native 256, 2 clips, coarse meshes) or
+            ``"bench"`` (:data:`BENCH_SESSIONS`, 24 frames each; ``sessions`` takes the
+            first N; fps, native, bubbles and bit_depth are set per session).
         seed: everything is deterministic in it.
         overrides: ``sessions``, ``frames``, ``fps``, ``native``, ``bubbles``,
             ``clips``, ``clip_frames``, ``mesh_spacing`` (m), ``bit_depth`` (8/16),
@@ -264,34 +431,43 @@ def _apply_umask(root: Path) -> None:
 
 def _build(root: Path, cfg: dict, preset: str, seed: int) -> dict:
     t_start = time.perf_counter()
-    timings: dict[str, float] = {}
+    timings: dict[str, float] = {"calibration_s": 0.0}
     board = charuco.board_yaml_dict()
     (root / "board.yaml").write_text(yaml.safe_dump(board, sort_keys=False))
-    rig = default_rig(native=cfg["native"])
-    t0 = time.perf_counter()
-    charuco.write_calibration_images({n: rig[n] for n in INPUTS}, root / "rig01" / "calib", seed)
-    timings["calibration_s"] = round(time.perf_counter() - t0, 3)
-    pd.DataFrame(
-        [["rig01", "board.yaml", "rig01/calib/cam0", "rig01/calib/cam1"]],
-        columns=["rig", "board", "cam0", "cam1"],
-    ).to_csv(root / "rigs.tsv", sep="\t", index=False)
-
-    rows, sessions = [], {}
-    for i in range(cfg["sessions"]):
+    specs = [session_spec(cfg, i) for i in range(cfg["sessions"])]
+    # The demo and tiny presets share one rig; the bench preset has one per session.
+    shared = preset != "bench"
+    rig_rows, rows, sessions = [], [], {}
+    for i, spec in enumerate(specs):
         name = f"session{i + 1:02d}"
-        scene = session_scene(seed, i, cfg)
+        rig_name = "rig01" if shared else f"rig{i + 1:02d}"
+        if not shared or i == 0:
+            rig = session_rig(spec)
+            t0 = time.perf_counter()
+            charuco.write_calibration_images(
+                {n: rig[n] for n in INPUTS}, root / rig_name / "calib", seed if shared else seed + i
+            )
+            timings["calibration_s"] += round(time.perf_counter() - t0, 3)
+            rig_rows.append(
+                [rig_name, "board.yaml", f"{rig_name}/calib/cam0", f"{rig_name}/calib/cam1"]
+            )
+        scene = session_scene(seed, i, cfg, None if shared else spec)
         t0 = time.perf_counter()
-        sessions[name] = _write_session(root / name, scene, cfg, seed, i)
+        sessions[name] = _write_session(root / name, scene, cfg, seed, i, spec)
         sessions[name]["seconds"] = round(time.perf_counter() - t0, 3)
-        fps = cfg["fps"]
+        fps = spec["fps"]
         fps_text = str(int(fps)) if float(fps).is_integer() else repr(fps)
-        rows.append([name, "rig01", fps_text, "", f"{name}/cam0", f"{name}/cam1", f"{name}/gt"])
+        vids = sessions[name]["videos"]
+        rows.append([name, rig_name, fps_text, "", vids["cam0"], vids["cam1"], f"{name}/gt"])
+    pd.DataFrame(rig_rows, columns=["rig", "board", "cam0", "cam1"]).to_csv(
+        root / "rigs.tsv", sep="\t", index=False
+    )
     pd.DataFrame(rows, columns=["session", "rig", "fps", "frames", "cam0", "cam1", "gt"]).to_csv(
         root / "sessions.tsv", sep="\t", index=False
     )
 
     t0 = time.perf_counter()
-    fit = int(round(cfg["native"] * FIT_SCALE))
+    fit = int(round(cfg["native"] * FIT_SCALE))  # clip size (bench: no clips)
     clips = []
     (root / "clips").mkdir()
     for k in range(cfg["clips"]):
@@ -308,7 +484,7 @@ def _build(root: Path, cfg: dict, preset: str, seed: int) -> dict:
         "preset": preset,
         "seed": seed,
         "settings": cfg,
-        "fit_scale": FIT_SCALE,
+        "fit_scale": BENCH_FIT_SCALE if preset == "bench" else FIT_SCALE,
         "sessions": sessions,
         "clips": clips,
         "timings": timings,

@@ -40,13 +40,19 @@ def default_rig(
     orbit_step_deg: float = 30.0,
     dist0: tuple[float, ...] = (-0.12, 0.08, 0.0005, -0.0003, 0.0),
     dist1: tuple[float, ...] = (-0.10, 0.06, -0.0004, 0.0002, 0.0),
+    native_height: int | None = None,
 ) -> dict[str, Camera]:
     """True cameras of the synthetic rig, ``{name: Camera}``, metres and pixels.
 
-    ``fx`` is given for ``native`` = 512 and scaled with it; principal points are
-    offset a few pixels from the image centre, as real sensors are.
+    ``native`` is the image width (and height, unless ``native_height`` is given), in
+    pixels. ``fx`` is given for a width of 512 and scaled with it (the horizontal field
+    of view is kept); principal points are offset a few pixels from the image centre,
+    as real sensors are. ``height`` is cam0's eye height above the plate (m); the
+    cameras look at :data:`SCENE_CENTER`, so their elevation is
+    ``atan((height − SCENE_CENTER[1]) / distance)`` (:func:`eye_height`).
     """
     s = native / 512.0
+    native_h = native if native_height is None else int(native_height)
     eye0 = SCENE_CENTER + np.array([0.0, height - SCENE_CENTER[1], distance])
     base = look_at(
         "cam0",
@@ -55,9 +61,9 @@ def default_rig(
         fx=fx * s,
         fy=fx * s * 1.002,
         width=native,
-        height=native,
+        height=native_h,
         cx=(native - 1) / 2 + 3.2 * s,
-        cy=(native - 1) / 2 - 2.1 * s,
+        cy=(native_h - 1) / 2 - 2.1 * s,
         role="input",
     )
     cam0 = replace(base, dist=np.asarray(dist0, dtype=np.float64))
@@ -73,3 +79,9 @@ def default_rig(
     orbit = orbit_cameras(base, SCENE_CENTER, n_views=orbit_views, step_deg=orbit_step_deg)
     cams = [cam0, cam1, mid, *orbit]
     return {c.name: c for c in cams}
+
+
+def eye_height(elevation_deg: float, distance: float = 0.03) -> float:
+    """Eye height above the plate (m) of a camera at ``distance`` (m, horizontal) from
+    :data:`SCENE_CENTER` that looks at it from ``elevation_deg`` above the horizontal."""
+    return float(SCENE_CENTER[1] + distance * np.tan(np.deg2rad(elevation_deg)))

@@ -185,12 +185,46 @@ def trace(state: FrameState, rays: Rays) -> dict[str, np.ndarray]:
     return trace_many(state, [rays])[0]
 
 
-def background(cam_name: str, height: int, width: int, seed: int = 0) -> np.ndarray:
+#: Backlight patterns of :func:`background`.
+BACKLIGHTS = ("smooth", "gradient", "stripes", "speckle", "dim")
+
+
+def background(
+    cam_name: str, height: int, width: int, seed: int = 0, pattern: str = "smooth"
+) -> np.ndarray:
     """(H, W) backlight level in [0, 1] for camera ``cam_name``: bright, slightly uneven.
 
     Defined on normalised image coordinates, so the same camera at another
-    resolution sees the same pattern.
+    resolution sees the same pattern. ``pattern`` (:data:`BACKLIGHTS`): ``smooth``
+    (vignetting and a faint diffuser pattern), ``gradient`` (plus a strong left-to-right
+    fall-off, to 60 %), ``stripes`` (plus a diffuser's stripes, ±6 %), ``speckle``
+    (plus a blotchy diffuser texture, ±5 %), ``dim`` (the smooth pattern at half level).
     """
+    if pattern not in BACKLIGHTS:
+        raise ValueError(f"unknown backlight pattern {pattern!r}; choose from {BACKLIGHTS}")
+    bg = _smooth_background(cam_name, height, width, seed)
+    if pattern == "smooth":
+        return bg
+    rng = np.random.default_rng([seed, zlib.crc32(cam_name.encode()), 77])
+    y = (np.arange(height) + 0.5) / height - 0.5
+    x = (np.arange(width) + 0.5) / width - 0.5
+    X, Y = np.meshgrid(x, y)
+    if pattern == "gradient":
+        side = rng.choice([-1.0, 1.0])
+        return bg * (0.8 + 0.4 * side * X)
+    if pattern == "stripes":
+        ang = rng.uniform(0, np.pi)
+        k = rng.uniform(8, 14)
+        return bg * (1 + 0.06 * np.sin(2 * np.pi * k * (np.cos(ang) * X + np.sin(ang) * Y)))
+    if pattern == "speckle":
+        tex = rng.normal(size=(24, 24))
+        tex = cv2.resize(tex, (width, height), interpolation=cv2.INTER_CUBIC)
+        tex = cv2.GaussianBlur(tex, (0, 0), max(width, height) / 40)
+        return bg * (1 + 0.05 * tex / max(np.abs(tex).max(), 1e-9))
+    return 0.5 * bg  # dim
+
+
+def _smooth_background(cam_name: str, height: int, width: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng([seed, zlib.crc32(cam_name.encode())])
     y = (np.arange(height) + 0.5) / height - 0.5
     x = (np.arange(width) + 0.5) / width - 0.5
@@ -244,12 +278,13 @@ def sensor(
 
 
 def quantize(img: np.ndarray, bit_depth: int = 8) -> np.ndarray:
-    """[0, 1] float image → uint8 (``bit_depth`` 8) or uint16 (16) grey levels."""
+    """[0, 1] float image → uint8 (``bit_depth`` 8) or uint16 grey levels (12: values
+    in [0, 4095], as a 12-bit sensor; 16: [0, 65535])."""
     if bit_depth == 8:
         return np.round(img * 255).astype(np.uint8)
-    if bit_depth == 16:
-        return np.round(img * 65535).astype(np.uint16)
-    raise ValueError(f"bit depth must be 8 or 16, got {bit_depth}")
+    if bit_depth in (12, 16):
+        return np.round(img * (2**bit_depth - 1)).astype(np.uint16)
+    raise ValueError(f"bit depth must be 8, 12 or 16, got {bit_depth}")
 
 
 def render_views(
@@ -259,6 +294,7 @@ def render_views(
     rngs: list[np.random.Generator],
     out_sizes: list[tuple[int, int] | None],
     blur_sigmas: list[float],
+    noise: tuple[float, float] | None = None,
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Several views of one frame: per view a noisy image (H', W') in [0, 1], the
     labels (H, W) int32 of the bubble seen through each ray (-1 = none), and the
@@ -266,8 +302,10 @@ def render_views(
 
     A view's ``rays`` may be supersampled; its ``out_size = (W', H')`` then
     area-averages the image down (labels stay at the ray resolution). Blur σ is in
-    output pixels.
+    output pixels. ``noise = (full_well electrons, read noise fraction)`` of
+    :func:`sensor` (default: its defaults).
     """
+    fw, rn = noise if noise is not None else (2500.0, 0.003)
     hits_all = trace_many(state, rays_list)
     out = []
     for rays, hits, bg, rng, size, sigma in zip(
@@ -277,7 +315,8 @@ def render_views(
         visible = np.isfinite(hits["t"]) & (hits["t"] < rays.t_plate)
         labels = np.where(visible, hits["label"], -1).reshape(rays.height, rays.width)
         clean = optics(clean, size, sigma)
-        out.append((sensor(clean, rng, blur_sigma=0.0), labels.astype(np.int32), clean))
+        noisy = sensor(clean, rng, blur_sigma=0.0, full_well=fw, read_noise=rn)
+        out.append((noisy, labels.astype(np.int32), clean))
     return out
 
 

@@ -1,0 +1,200 @@
+"""``surfphase bench accuracy``: its metric functions against hand-made cases and brute
+force, and a CI-sized run of the whole benchmark (table shape)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+from skimage.measure import marching_cubes
+
+from surfphase.bench import accuracy as acc
+from surfphase.eval.geometry import sample_surface
+
+MM = 1e-3
+
+
+def ellipsoid_mesh(center, semi, h=2e-5, rot=None):
+    """Marching-cubes mesh (m) of an ellipsoid with semi-axes ``semi`` (m) about
+    ``center``; ``rot`` (3, 3) turns its axes (columns) in the lab frame."""
+    semi = np.asarray(semi, dtype=np.float64)
+    R = np.eye(3) if rot is None else np.asarray(rot)
+    r = semi.max() * 1.2
+    ax = np.arange(-r, r + h, h)
+    X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    P = np.stack([X, Y, Z], axis=-1) @ R  # lab offsets -> body coordinates
+    f = np.sqrt(((P / semi) ** 2).sum(axis=-1)) - 1.0
+    v, faces, _, _ = marching_cubes(f, 0.0, spacing=(h, h, h))
+    return v - r + np.asarray(center), faces.astype(np.int64)
+
+
+def test_detection_precision_recall_hand_case():
+    truth = pd.DataFrame(
+        [  # frame, bubble, x, y, z, r_eq
+            [0, 1, 0.0, 2 * MM, 0, 1 * MM],  # free, seen in both
+            [0, 2, 5 * MM, 0.5 * MM, 0, 1 * MM],  # attached
+            [0, 3, 9 * MM, 6 * MM, 0, 1 * MM],  # free, seen by one camera only
+            [1, 1, 0.0, 2.2 * MM, 0, 1 * MM],
+        ],
+        columns=["frame", "bubble", "x", "y", "z", "r_eq"],
+    )
+    pred = pd.DataFrame(
+        [
+            [0, 0, 5 * MM, 0.4 * MM, 0],  # nucleation region, a bubble attached: real
+            [0, 4, 0.3 * MM, 2 * MM, 0],  # 0.3 r_eq from bubble 1: real
+            [0, 7, 20 * MM, 2 * MM, 0],  # nothing near it: not real
+            [1, 0, 5 * MM, 0.4 * MM, 0],  # nucleation region, nothing attached: not real
+            [1, 4, 0.0, 2.9 * MM, 0],  # 0.7 r_eq away: outside the gate
+        ],
+        columns=["frame", "bubble", "x", "y", "z"],
+    )
+    seen = {0: {1, 2}, 1: {1}}
+    attached = {0: {2}, 1: set()}
+    d = acc.detection(pred, truth, seen, attached)
+    assert (d["reported"], d["real"]) == (5, 2)
+    assert (d["free_seen"], d["free_found"]) == (2, 1)  # bubble 1 in frames 0 and 1
+    assert d["precision"] == pytest.approx(0.4) and d["recall"] == pytest.approx(0.5)
+    wide = acc.detection(pred, truth, seen, attached, gate_r_eq=0.8)
+    assert (wide["real"], wide["free_found"]) == (3, 2)
+
+
+def _truth_rows(ids, centres, r_eq):
+    return pd.DataFrame(
+        [[0, i, *c, r] for i, c, r in zip(ids, centres, r_eq, strict=True)],
+        columns=["frame", "bubble", "x", "y", "z", "r_eq"],
+    )
+
+
+def test_chamfer_is_brute_force_over_the_bubbles_both_views_see():
+    c1, c2 = np.array([0.0, 3 * MM, 0]), np.array([6 * MM, 4 * MM, 0])
+    v1, f1 = ellipsoid_mesh(c1, [1 * MM] * 3)
+    v2, f2 = ellipsoid_mesh(c2, [0.8 * MM] * 3)
+    verts, faces = np.concatenate([v1, v2]), np.concatenate([f1, f2 + len(v1)])
+    rows = _truth_rows([1, 2], [c1, c2], [1 * MM, 0.8 * MM])
+    tf = acc.true_frame(rows, verts, faces, seen_ids={1}, n=4000, seed=0)
+    assert list(tf.seen) == [True, False]
+    # Labels: each sample belongs to the sphere it was drawn on.
+    on1 = np.abs(np.linalg.norm(tf.points - c1, axis=1) - 1 * MM) < 0.05 * MM
+    assert np.array_equal(tf.label == 0, on1)
+    pv, pf = ellipsoid_mesh(c1 + [0.2 * MM, 0, 0], [1.1 * MM] * 3, h=3e-5)
+    out = acc.frame_surface_metrics(tf, (pv, pf), np.array([0, 0, 1.0]), n=3000, seed=7)
+    a = sample_surface(pv, pf, 3000, 7)
+    b = tf.points[tf.label == 0]  # bubble 2 is seen by one view only: left out
+    d = np.linalg.norm(a[:, None] - b[None], axis=-1)
+    brute = 0.5 * (d.min(axis=1).mean() + d.min(axis=0).mean()) * 1e3
+    assert out["chamfer_mm"] == pytest.approx(brute, rel=1e-9)
+    assert out["r_eq_mm"] == pytest.approx(1.0)
+    # Share of the mesh within 0.25 r_eq of the truth (all true surfaces), brute force.
+    dall = np.linalg.norm(a[:, None] - tf.points[None], axis=-1)
+    j = dall.argmin(axis=1)
+    near = np.mean(dall.min(axis=1) <= 0.25 * tf.r_eq[tf.label[j]])
+    assert out["near"] == pytest.approx(near)
+    assert 0.3 < near < 1.0
+
+
+def test_near_share_and_volume_on_concentric_spheres():
+    c = np.array([0.0, 3 * MM, 0])
+    verts, faces = ellipsoid_mesh(c, [1 * MM] * 3)
+    rows = _truth_rows([1], [c], [1 * MM])
+    tf = acc.true_frame(rows, verts, faces, seen_ids={1}, n=20000)
+    bis = np.array([1.0, 0, 0])
+    for scale, share in ((1.15, 1.0), (1.35, 0.0)):
+        mv, mf = ellipsoid_mesh(c, [scale * MM] * 3, h=3e-5)
+        out = acc.frame_surface_metrics(tf, (mv, mf), bis, n=5000)
+        assert out["near"] == share
+        ((bid, vol_err, ratio),) = out["bubbles"]
+        assert bid == 1 and vol_err == pytest.approx(scale**3 - 1, rel=0.03)
+        assert ratio == pytest.approx(1.0, abs=0.03)
+        assert out["chamfer_mm"] == pytest.approx(scale - 1, rel=0.1)
+    # No mesh: nothing reconstructed, the bubble's volume error is −100 %.
+    out = acc.frame_surface_metrics(tf, None, bis)
+    assert math.isnan(out["chamfer_mm"]) and out["bubbles"][0][1] == -1.0
+
+
+def test_extent_ratio_on_an_analytic_spheroid():
+    # Semi-axes 1.4 mm along the bisector (lab direction b), 0.9 mm across it, 1 mm up.
+    b = np.array([np.sin(0.4), 0.0, np.cos(0.4)])
+    across = np.cross([0.0, 1.0, 0.0], b)
+    R = np.stack([b, [0.0, 1.0, 0.0], across], axis=1)
+    verts, faces = ellipsoid_mesh([0, 0, 0], [1.4 * MM, 1.0 * MM, 0.9 * MM], rot=R)
+    pts = sample_surface(verts, faces, 40000, 0)
+    assert acc.extent_ratio(pts, b) == pytest.approx(1.4 / 0.9, rel=0.01)
+    assert acc.extent_ratio(pts, across) == pytest.approx(0.9 / 1.4, rel=0.01)
+    assert acc.extent_ratio(verts, b) == pytest.approx(1.4 / 0.9, rel=0.01)
+    # The bisector of two cameras' viewing directions, horizontal.
+    d0, d1 = np.array([0.0, -0.1, -1.0]), np.array([-np.sin(0.8), -0.1, -np.cos(0.8)])
+    bis = acc.horizontal_bisector([d0, d1])
+    np.testing.assert_allclose(bis, [-np.sin(0.4), 0, -np.cos(0.4)], atol=1e-12)
+
+
+def test_mesh_components_and_volume():
+    v1, f1 = ellipsoid_mesh([0, 0, 0], [1 * MM] * 3)
+    v2, f2 = ellipsoid_mesh([5 * MM, 0, 0], [0.5 * MM, 0.5 * MM, 1 * MM])
+    verts, faces = np.concatenate([v1, v2]), np.concatenate([f1, f2 + len(v1)])
+    comp = acc.mesh_components(verts, faces)
+    assert len(np.unique(comp)) == 2
+    vols = sorted(abs(acc.signed_volume(verts, faces[comp == c])) for c in np.unique(comp))
+    assert vols[0] == pytest.approx(4 / 3 * np.pi * 0.25e-9, rel=0.01)
+    assert vols[1] == pytest.approx(4 / 3 * np.pi * 1e-9, rel=0.01)
+
+
+def test_table_rows_mean_and_worst():
+    def row(name, v, p):
+        return {
+            "session": name,
+            "method": {"relative_error": v, "abs_vx": 0.1, "abs_vy": v, "abs_vz": 0.0},
+            "detection": {"precision": p, "recall": 1.0},
+            "extent_ratio_vs_truth": 2.0 - v,
+        }
+
+    rows = acc.summary_rows([row("a", 0.2, 0.9), row("b", 0.4, 0.5)])
+    assert [r[0] for r in rows] == ["a", "b", "mean", "worst"]
+    k = [c[0] for c in acc.COLUMNS]
+    mean, worst = dict(zip(k, rows[2][1], strict=True)), dict(zip(k, rows[3][1], strict=True))
+    assert mean["v rel: method"] == pytest.approx(0.3) and worst["v rel: method"] == 0.4
+    assert worst["precision"] == 0.5 and worst["bisector/across ÷ truth"] == pytest.approx(1.8)
+    assert worst["abs err vx/vy/vz m/s: method"] == pytest.approx((0.1, 0.4, 0.0))
+    assert math.isnan(mean["Chamfer mm"])
+    text = acc.format_table([row("a", 0.2, 0.9)])
+    assert text.count("\n") == 4 and "| a | 0.200 |" in text
+
+
+def test_ci_sized_benchmark_table(tmp_path, capsys):
+    """The whole benchmark on one bench session of 3 frames with short fits: the table
+    has a row per session plus mean and worst, a column per metric, and the baseline's
+    smoothing grid; the command scores the same results again with --skip-run."""
+    from surfphase.cli import main as cli_main
+
+    small = ["fit.iters_first=15", "fit.iters_next=5", "fit.n_init=400", "mesh.voxels=24"]
+    small += ["mesh.n_orbit=4", "evaluate.compare_meshes=false"]
+    res = acc.run_accuracy_bench(
+        tmp_path / "w", sessions=1, frames=3, set_values=small, samples=2000, log=lambda s: None
+    )
+    rows = acc.summary_rows(res["rows"])
+    assert [r[0] for r in rows] == ["session01", "mean", "worst"]
+    lines = res["table"].splitlines()
+    assert len(lines) == 2 + 3 and all(ln.count("|") == len(acc.COLUMNS) + 2 for ln in lines)
+    r = res["rows"][0]
+    assert "error" not in r
+    for key in ("method", "baseline_raw", "baseline_smoothed"):
+        assert r[key]["matched"] > 0 and np.isfinite(r[key]["relative_error"])
+    assert 0 <= r["detection"]["precision"] <= 1 and r["detection"]["reported"] > 0
+    assert r["frames_without_mesh"] == 0 and np.isfinite(r["chamfer_mm"])
+    assert np.isfinite(r["psnr"]) and 0 < r["ssim"] <= 1
+    grid = res["smoothing"]["grid"]
+    assert len(grid) == len(acc.SMOOTH_WINDOWS_S) * len(acc.SMOOTH_ORDERS)
+    best = min(g["mean_relative_error"] for g in grid)
+    assert r["baseline_smoothed"]["relative_error"] == pytest.approx(best)
+    assert "0.5 r_eq" in res["notes"] and (tmp_path / "w" / "accuracy.md").is_file()
+    capsys.readouterr()
+    argv = ["bench", "accuracy", "--work", str(tmp_path / "w"), "--sessions", "1"]
+    assert (
+        cli_main(
+            [*argv, "--skip-run", "--samples", "2000", *sum((["--set", s] for s in small), [])]
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert out.splitlines()[:5] == lines
