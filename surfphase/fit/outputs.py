@@ -137,7 +137,11 @@ def surfel_velocities(means: np.ndarray, alive: np.ndarray, times: np.ndarray) -
 
 
 def bubble_table(
-    arrays: dict[str, np.ndarray], times: np.ndarray, frames: np.ndarray
+    arrays: dict[str, np.ndarray],
+    times: np.ndarray,
+    frames: np.ndarray,
+    track_window_s: float = 0.0,
+    track_order: int = 2,
 ) -> pd.DataFrame:
     """Per frame and bubble: centroid (m) and velocity (m/s) of the surfels bound at that
     frame (weights ``o·s_x·s_y`` at that frame).
@@ -201,7 +205,69 @@ def bubble_table(
                 }
             )
     cols = ["frame", "time_s", "bubble", "x", "y", "z", "vx", "vy", "vz", "n_surfels"]
-    return pd.DataFrame(rows, columns=cols)
+    table = pd.DataFrame(rows, columns=cols)
+    if track_window_s > 0 and len(table):
+        pos = {int(f): t for t, f in enumerate(frames)}
+        seg = track_segments(table, [pos[int(f)] for f in table["frame"]], bub, w)
+        smooth_tracks(table, seg, track_window_s, track_order)
+    return table
+
+
+def track_segments(
+    table: pd.DataFrame, positions: list[int], bub: np.ndarray, w: np.ndarray
+) -> np.ndarray:
+    """(rows,) id of the track each row of ``table`` belongs to.
+
+    Row (t, b) and row (t + 1, q) are one track when ``b`` continues as ``q``
+    (:func:`~surfphase.fit.binding.track_continues`, both ways); a merge, a split or
+    the nucleation region ends it. ``positions``: each row's frame position t;
+    ``bub``, ``w``: (F, N) surfel bubble ids (−1 unbound) and centroid weights.
+    """
+    at = {(t, int(b)): r for r, (t, b) in enumerate(zip(positions, table["bubble"], strict=True))}
+    seg = np.arange(len(table))
+    for (t, b), r in sorted(at.items()):  # in time order: a track's id propagates
+        if b == 0 or t + 1 >= len(bub):
+            continue
+        q = binding.track_continues(bub[t], bub[t + 1], w[t], w[t + 1], b)
+        if q is not None and int(q) != 0 and (t + 1, int(q)) in at:
+            seg[at[(t + 1, int(q))]] = seg[r]
+    return seg
+
+
+def smooth_tracks(table: pd.DataFrame, seg: np.ndarray, window_s: float, order: int) -> None:
+    """Replace each track's centroids and velocities by a moving polynomial fit, in place.
+
+    Along each track (``seg``, rows in time order, uniformly sampled), the centroid
+    ``x y z`` is smoothed by a moving polynomial (``scipy.signal.savgol_filter`` of order
+    ``order`` over ``window_s`` seconds, made an odd number of frames and capped at the
+    track; ``mode="interp"`` fits the ends), the track smoothing of particle-tracking
+    codes, and ``vx vy vz`` is ``np.gradient`` of the smoothed track (central
+    differences, one-sided at its ends: the ground truth's own convention). So the
+    reported centroids and velocities agree by construction. Tracks of ``order + 1``
+    frames or fewer, and the nucleation region (bubble 0), are left as they are.
+    """
+    from scipy.signal import savgol_filter
+
+    if order < 1:
+        raise ValueError(f"fit: track_order must be >= 1, got {order}")
+    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
+    for s in np.unique(seg):
+        rows = np.flatnonzero(seg == s)
+        rows = rows[np.argsort(table["time_s"].to_numpy()[rows])]
+        if len(rows) <= order + 1 or int(table["bubble"].iloc[rows[0]]) == 0:
+            continue
+        t = table["time_s"].to_numpy()[rows]
+        dt = float(np.median(np.diff(t)))
+        win = max(int(round(window_s / dt)), order + 2)
+        win += 1 - win % 2
+        win = min(win, len(rows) if len(rows) % 2 else len(rows) - 1)
+        if win <= order:
+            continue
+        p = table[xyz].to_numpy(np.float64)[rows]
+        kw = dict(window_length=win, polyorder=order, axis=0, mode="interp")
+        smooth = savgol_filter(p, **kw)
+        table.loc[table.index[rows], xyz] = smooth
+        table.loc[table.index[rows], vel] = np.gradient(smooth, t, axis=0)
 
 
 def load_surfels(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -289,7 +355,7 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
     shutil.rmtree(final, ignore_errors=True)
     os.replace(tmp_dir, final)
 
-    table = bubble_table(arrays, times, frames)
+    table = bubble_table(arrays, times, frames, float(p["track_window_s"]), int(p["track_order"]))
     atomic_write_text(out_dir / "bubbles.csv", table.to_csv(index=False))
     curves = pd.DataFrame([row for r in records for row in r["curves"]])
     atomic_write_text(out_dir / "curves.csv", curves.to_csv(index=False))

@@ -138,6 +138,10 @@ DEFAULTS: dict = {
     # The heated surface (y = 0, docs/conventions.md §1) is solid plate: after every step the
     # surfel centres are put back on or above it (a projected gradient step); None = off.
     "floor_y": 0.0,  # metres, lab frame
+    # -- reported tracks (bubbles.csv) ---------------------------------------------------
+    "track_window_s": 0.0,  # > 0: centroids and velocities of each bubble track from a
+    # moving polynomial over this many seconds (Savitzky-Golay; 0: per-frame values)
+    "track_order": 2,  # polynomial order of that fit
     # Two views leave a bubble's extent along their bisector (the mean viewing direction)
     # unseen: surfels may sit anywhere in the visual hull's long corners. With a number k,
     # after every step a surfel farther than k·r along that axis from its bubble's centre
