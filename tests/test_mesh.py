@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -141,6 +142,7 @@ def _write_fit(tmp_path, frames: int = 2):
         "log_scales": np.stack([s["log_scales"]] * frames),
         "opacity": np.stack([s["opacity"]] * frames),
         "velocity": np.broadcast_to(v, (frames, n, 3)).copy(),
+        "bubble": np.ones((frames, n), np.int64),
     }
     fit = tmp_path / "fit"
     fit.mkdir()
@@ -250,6 +252,11 @@ def test_cli_writes_ply_per_frame_with_velocity(tmp_path, capsys):
     assert "mesh sphere: frames to do 1/2" in printed and "ETA" in printed  # progress
     summary = json.loads((out / "mesh.json").read_text())
     assert summary["session"] == "sphere"
+    # Per-bubble size: the one bubble, its volume against the true sphere's.
+    sizes = pd.read_csv(out / "bubble_sizes.csv")
+    assert sizes["frame"].tolist() == [3, 4] and (sizes["bubble"] == 1).all()
+    assert sizes["closed"].all()
+    np.testing.assert_allclose(sizes["d_eq_m"], 2 * R_SPHERE, rtol=0.05)
     assert [r["frame"] for r in summary["frames"]] == [3, 4]
     for r in summary["frames"]:
         assert r["components"] == 1 and r["watertight"]

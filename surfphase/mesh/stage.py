@@ -39,13 +39,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 from scipy.spatial import cKDTree
 
 from surfphase.cameras import Camera, load_cameras, orbit_cameras
 from surfphase.fit.outputs import load_surfels
-from surfphase.io import atomic_path, atomic_write_json, part_dir, replace_dir
+from surfphase.io import atomic_path, atomic_write_json, atomic_write_text, part_dir, replace_dir
 from surfphase.mesh.cleanup import clean_mesh, mesh_stats
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
+from surfphase.mesh.measure import bubble_sizes, vertex_bubbles
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
 from surfphase.mesh.vtkxml import write_polydata, write_pvd
 from surfphase.mesh.windows import window_positions
@@ -293,7 +295,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
         t0 = time.perf_counter()
         a = surf["alive"][t]
         verts, faces = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
-        vel = np.zeros((0, 3))
+        vel, vbub = np.zeros((0, 3)), np.zeros(0, np.int64)
         if a.sum() >= 4:
             verts, faces = mesh_frame(
                 surf["means"][t][a],
@@ -306,6 +308,10 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
             )
             if len(verts):
                 vel = vertex_velocities(verts, surf["means"][t][a], surf["velocity"][t][a])
+                if "bubble" in surf:  # (a surfels.npz made by hand may have no ids)
+                    vbub = vertex_bubbles(verts, surf["means"][t][a], surf["bubble"][t][a])
+                else:
+                    vbub = np.full(len(verts), -1, np.int64)
         frame = int(surf["frame"][t])
         rec = {
             "key": np.array(s.key),
@@ -315,6 +321,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
             "verts": np.asarray(verts, np.float64),
             "faces": np.asarray(faces, np.int64).reshape(-1, 3),
             "velocity": np.asarray(vel, np.float64).reshape(-1, 3),
+            "vertex_bubble": np.asarray(vbub, np.int64).reshape(-1),
             "seconds": np.float64(time.perf_counter() - t0),
         }
         with atomic_path(_frame_file(work, frame)) as tmp, open(tmp, "wb") as fh:
@@ -337,7 +344,7 @@ def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict)
     tmp = part_dir(out)
     pvd = f"{session or 'mesh'}.pvd"
     try:
-        rows, series = [], []
+        rows, series, sizes = [], [], []
         (tmp / "vtk").mkdir()
         for r in records:
             frame, verts, faces, vel = int(r["frame"]), r["verts"], r["faces"], r["velocity"]
@@ -346,6 +353,8 @@ def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict)
             write_mesh_ply(tmp / f"{frame:06d}.ply", verts, faces, vel, colors)
             write_polydata(tmp / "vtk" / f"{frame:06d}.vtp", verts, faces, vel, frame, time_s)
             series.append((time_s, f"vtk/{frame:06d}.vtp"))
+            for b in bubble_sizes(verts, faces, r["vertex_bubble"]):
+                sizes.append({"frame": frame, "time_s": time_s, **b})
             rows.append(
                 {
                     "frame": frame,
@@ -357,6 +366,10 @@ def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict)
                 }
             )
         write_pvd(tmp / pvd, series)
+        cols = ["frame", "time_s", "bubble", "volume_m3", "d_eq_m", "components", "closed"]
+        atomic_write_text(
+            tmp / "bubble_sizes.csv", pd.DataFrame(sizes, columns=cols).to_csv(index=False)
+        )
         summary = {
             "session": session,
             "units": "metres, m/s, seconds",
