@@ -1,0 +1,587 @@
+"""Fused CPU backend of :func:`surfphase.render.rasterize_surfels` (numba).
+
+The projection and culling are the sparse backend's, in PyTorch
+(:func:`surfphase.render.sparse.prepare_surfels`), so their gradients come from autograd;
+only the per-(pixel, surfel) work is fused, in a :class:`torch.autograd.Function` whose
+forward and backward are numba kernels:
+
+* **binning** (serial): every visible surfel, in (camera, centre depth) order, is listed
+  in each image row its screen box meets, so each row's list is in depth order; per
+  (row, surfel) entry the pixel span that can hold its support is solved in closed form
+  (the sparse backend's conic and low-pass disk), so the candidates are the sparse
+  backend's;
+* **forward** (parallel over rows): each row walks its surfels in depth order, each over
+  its span, so every pixel sees its surfels front to back, with the exact per-pair rules
+  of :mod:`surfphase.render.rasterize` (support ``ρ ≤ 9``, near plane, ``α ≥ 1/255``,
+  ``α ≤ 0.99``, termination under ``T = 1e-4``), accumulating colour, alpha, depth,
+  normals and distortion; it keeps per pixel the final transmittance, the end of its
+  blended run, the median pair and the distortion's sums;
+* **backward** (parallel over rows): each row walks its surfels in reverse, recovering a
+  pixel's transmittance before each pair as ``T / (1 − α)`` (as 2DGS and gsplat do), and
+  sums each (row, surfel) entry's gradient of the packed features over its pixels into
+  that entry's slot — every slot belongs to one row, so to one thread; a column-parallel
+  loop then sums the entries into the per-surfel gradient in entry order.
+
+No two threads ever add into the same number, and every sum runs in a fixed order, so the
+results are bit-for-bit identical from run to run and for any thread count. Inside the
+kernels everything is float64 (float32 inputs are widened, the outputs narrowed), so
+there is one compiled specialisation per kernel, cached on disk (``cache=True``).
+
+The support is decided per pair, exactly as in the sparse backend; spans only bound the
+candidates. Memory is linear in pixels plus (row, surfel) entries, so
+``max_pairs_per_chunk`` is not needed here (accepted, unused).
+
+The kernels run on numba's ``workqueue`` threading layer (chosen in
+:mod:`surfphase`: its idle workers sleep on a condition variable rather than spin, and it
+brings no second OpenMP runtime beside PyTorch's), with as many threads as
+``torch.get_num_threads()`` (capped by numba's pool size).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from numba import njit, prange
+from torch import Tensor
+
+from surfphase.render.projection import ALPHA_MAX, ALPHA_MIN, CUTOFF, T_MIN
+from surfphase.render.sparse import prepare_surfels
+
+# Column layout of the packed feature table (as in surfphase.render.sparse).
+_DET, _MX, _MY, _Z, _OPA, _NRM, _COL = 9, 10, 11, 12, 13, 14, 17
+
+
+def rasterize_fused(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    low_pass: float,
+    max_pairs_per_chunk: int,
+) -> dict:
+    """Render; returns raw accumulations (as :func:`surfphase.render.sparse.rasterize_sparse`).
+
+    ``n_pairs`` counts the candidate (pixel, surfel) pairs tested (the pixels of each
+    row span). ``max_pairs_per_chunk`` is ignored (see the module's docstring).
+    """
+    if means.device.type != "cpu":
+        raise ValueError(
+            f"rasterize_surfels: the fused backend runs on the CPU only, got tensors on "
+            f"{means.device}; use backend='torch' (or 'auto') for CUDA"
+        )
+    C, N = viewmats.shape[0], means.shape[0]
+    D = colors.shape[-1]
+    prep = prepare_surfels(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, low_pass
+    )
+    feats = prep["feats"]
+    f64 = np.ascontiguousarray(feats.detach().to(torch.float64).numpy())
+    vis = np.ascontiguousarray(prep["vis_idx"].numpy().astype(np.int64))
+    vbox = np.ascontiguousarray(prep["vbox"].numpy().astype(np.int64))
+    n_threads = _threads()
+    row_off, row_surf, row_vis = _bin_rows(vis, vbox, N, C, int(height))
+    span = _row_spans(
+        f64, vbox, row_off, row_surf, row_vis, int(height), float(low_pass), n_threads
+    )
+    n_pairs = int(np.maximum(span[:, 1] - span[:, 0] + 1, 0).sum())
+    consts = (
+        C,
+        int(width),
+        int(height),
+        int(D),
+        float(near),
+        float(far),
+        1.0 / (low_pass * low_pass) if low_pass > 0 else 0.0,
+        bool(low_pass > 0),
+    )
+    accum, median = _FusedComposite.apply(feats, f64, row_off, row_surf, span, consts)
+    return {
+        "n_pairs": n_pairs,
+        "accum": accum,
+        "depth_median": median,
+        "means2d": prep["proj"]["means2d"],
+        "radii": prep["radii"],
+        "visible": prep["visible"],
+    }
+
+
+def _threads() -> int:
+    """Numba threads for the kernels: PyTorch's setting, capped by numba's pool."""
+    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
+
+
+class _FusedComposite(torch.autograd.Function):
+    """feats (C·N, 17 + D) → accum (C, H, W, D + 6), median depth (C, H, W, 1)."""
+
+    @staticmethod
+    def forward(ctx, feats: Tensor, f64, row_off, row_surf, span, consts):
+        C, W, H, D, near, far, inv_lp2, use_lp = consts
+        accum, median, state, idx = _forward(
+            f64,
+            row_off,
+            row_surf,
+            span,
+            C,
+            W,
+            H,
+            D,
+            near,
+            far,
+            inv_lp2,
+            use_lp,
+            CUTOFF * CUTOFF,
+            ALPHA_MIN,
+            ALPHA_MAX,
+            T_MIN,
+            _threads(),
+        )
+        ctx.fused = (f64, row_off, row_surf, span, consts, accum, state, idx, feats.dtype)
+        out_accum = torch.from_numpy(accum).to(feats.dtype)
+        out_median = torch.from_numpy(median).to(feats.dtype)
+        return out_accum, out_median
+
+    @staticmethod
+    def backward(ctx, g_accum: Tensor, g_median: Tensor):
+        f64, row_off, row_surf, span, consts, accum, state, idx, dtype = ctx.fused
+        C, W, H, D, near, far, inv_lp2, use_lp = consts
+        ga = _as_f64(g_accum, accum.shape)
+        gm = _as_f64(g_median, (C, H, W, 1))
+        g_entry = _backward(
+            f64,
+            row_off,
+            row_surf,
+            span,
+            accum,
+            state,
+            idx,
+            ga,
+            gm,
+            C,
+            W,
+            H,
+            D,
+            near,
+            far,
+            inv_lp2,
+            use_lp,
+            CUTOFF * CUTOFF,
+            ALPHA_MIN,
+            ALPHA_MAX,
+            _threads(),
+        )
+        g_feats = _reduce_entries(g_entry, row_surf, f64.shape[0])
+        return torch.from_numpy(g_feats).to(dtype), None, None, None, None, None
+
+
+def _as_f64(g: Tensor | None, shape) -> np.ndarray:
+    if g is None:
+        return np.zeros(shape, dtype=np.float64)
+    return np.ascontiguousarray(g.detach().to(torch.float64).numpy())
+
+
+@njit(cache=True)
+def _bin_rows(vis, vbox, N, C, H):
+    """Per-image-row lists of visible surfels, in the order of ``vis`` (camera, depth).
+
+    Returns ``row_off`` (C·H + 1,) CSR offsets over rows ``c·H + y``, ``row_surf`` (E,)
+    the feature row (``c·N + n``) and ``row_vis`` (E,) the ``vis`` position of each
+    (row, surfel) entry.
+    """
+    count = np.zeros(C * H + 1, dtype=np.int64)
+    for k in range(vis.shape[0]):
+        base = (vis[k] // N) * H + 1
+        for y in range(vbox[k, 1], vbox[k, 3] + 1):
+            count[base + y] += 1
+    off = np.cumsum(count)
+    fill = off[:-1].copy()
+    surf = np.empty(off[-1], dtype=np.int64)
+    kpos = np.empty(off[-1], dtype=np.int64)
+    for k in range(vis.shape[0]):
+        base = (vis[k] // N) * H
+        for y in range(vbox[k, 1], vbox[k, 3] + 1):
+            surf[fill[base + y]] = vis[k]
+            kpos[fill[base + y]] = k
+            fill[base + y] += 1
+    return off, surf, kpos
+
+
+@njit(cache=True, parallel=True)
+def _row_spans(f, vbox, row_off, row_surf, row_vis, H, low_pass, n_threads):
+    """Inclusive pixel x-range (E, 2) of each (row, surfel) entry that can hold support.
+
+    On row ``y`` the 3D support ``ρ3d ≤ r²`` (``r² = min(9, 2 ln(255·o))``: beyond it
+    α < 1/255, slightly widened) is ``A x² + 2 B x + Cq ≤ 0`` with ``q = J·(x, y, 1)``; its
+    root interval is padded for rounding and joined with the low-pass disk; rows where
+    the conic is not an interval (``A ≤ 0``) keep the whole box. The result is clipped to
+    the surfel's box; an empty range has x1 < x0. The exact per-pair test decides later.
+    """
+    out = np.empty((row_surf.shape[0], 2), dtype=np.int64)
+    n_rows = row_off.shape[0] - 1
+    for th in prange(n_threads):
+        for r in range(th, n_rows, n_threads):
+            y = float(r % H)
+            for e in range(row_off[r], row_off[r + 1]):
+                k = row_vis[e]
+                s = row_surf[e]
+                bx0 = vbox[k, 0]
+                bx1 = vbox[k, 2]
+                r2 = min(2.0 * np.log(255.0 * f[s, _OPA]), 9.0) * (1.0 + 1e-6) + 1e-6
+                a0, a1, a2 = f[s, 0], f[s, 3], f[s, 6]
+                q0 = f[s, 1] * y + f[s, 2]
+                q1 = f[s, 4] * y + f[s, 5]
+                q2 = f[s, 7] * y + f[s, 8]
+                A = a0 * a0 + a1 * a1 - r2 * a2 * a2
+                B = a0 * q0 + a1 * q1 - r2 * a2 * q2
+                Cq = q0 * q0 + q1 * q1 - r2 * q2 * q2
+                if A > 0.0:
+                    disc = B * B - A * Cq
+                    if disc >= 0.0:
+                        root = np.sqrt(disc)
+                        lo = (-B - root) / A
+                        hi = (-B + root) / A
+                        lo -= 1e-6 + 1e-6 * abs(lo)
+                        hi += 1e-6 + 1e-6 * abs(hi)
+                    else:
+                        lo = np.inf
+                        hi = -np.inf
+                    if low_pass > 0.0:
+                        dy = f[s, _MY] - y
+                        h2 = r2 * low_pass * low_pass - dy * dy
+                        if h2 >= 0.0:
+                            h = np.sqrt(h2) + 1e-6
+                            lo = min(lo, f[s, _MX] - h)
+                            hi = max(hi, f[s, _MX] + h)
+                    if lo > hi:
+                        out[e, 0] = 0
+                        out[e, 1] = -1
+                        continue
+                    x0 = np.ceil(max(lo, bx0 - 1.0))
+                    x1 = np.floor(min(hi, bx1 + 1.0))
+                    out[e, 0] = max(int(x0), bx0)
+                    out[e, 1] = min(int(x1), bx1)
+                else:
+                    out[e, 0] = bx0
+                    out[e, 1] = bx1
+    return out
+
+
+@njit(cache=True, inline="always")
+def _pair(x, j0, j3, j6, b0, b1, b2, det, mx, dy2, zc, opa, inv_lp2, use_lp, near, r2max):
+    """One pair's geometry: (ok, alpha_raw, rho, depth, use3, u, v, inv, depth3).
+
+    Per entry (surfel on row ``y``): ``q = (j0, j3, j6)·x + (b0, b1, b2)`` is
+    ``J·(x, y, 1)``, ``dy2 = (μy − y)²·inv_lp2``. ``alpha_raw`` = o·exp(−ρ/2) before the
+    0.99 cap; ``ok`` is the support, hit and near-plane test (the 1/255 test is the
+    caller's, on the capped alpha).
+    """
+    q2 = j6 * x + b2
+    if q2 == 0.0:
+        return False, 0.0, 0.0, 1.0, True, 0.0, 0.0, 0.0, 0.0
+    inv = 1.0 / q2
+    u = (j0 * x + b0) * inv
+    v = (j3 * x + b1) * inv
+    rho = u * u + v * v
+    depth3 = det * inv
+    depth = depth3
+    use3 = True
+    if use_lp:
+        dx = mx - x
+        rho2 = dx * dx * inv_lp2 + dy2
+        if not rho <= rho2:
+            use3 = False
+            rho = rho2
+            depth = zc
+    if rho > r2max or depth < near:
+        return False, 0.0, rho, depth, use3, u, v, inv, depth3
+    return True, opa * np.exp(-0.5 * rho), rho, depth, use3, u, v, inv, depth3
+
+
+@njit(cache=True, parallel=True)
+def _forward(
+    f,
+    row_off,
+    row_surf,
+    span,
+    C,
+    W,
+    H,
+    D,
+    near,
+    far,
+    inv_lp2,
+    use_lp,
+    r2max,
+    a_min,
+    a_max,
+    t_min,
+    n_threads,
+):
+    """Front-to-back compositing, one thread per interleaved set of image rows.
+
+    Each row walks its surfels in depth order, each over its span of pixels, so every
+    pixel sees its surfels front to back. Returns ``accum`` (C, H, W, D + 6), ``median``
+    (C, H, W, 1), ``state`` (C, H, W, 3) = final transmittance, Σw·m, Σw·m², and ``idx``
+    (C, H, W, 2) int64 = end of the pixel's blended run (entry index, exclusive; the
+    row's first entry if none) and its median entry (−1 if none).
+    """
+    accum = np.zeros((C, H, W, D + 6))
+    median = np.zeros((C, H, W, 1))
+    state = np.zeros((C, H, W, 3))
+    idx = np.zeros((C, H, W, 2), dtype=np.int64)
+    n_rows = C * H
+    mscale = far / (far - near)
+    for th in prange(n_threads):
+        done = np.zeros(W, dtype=np.bool_)
+        for r in range(th, n_rows, n_threads):
+            c = r // H
+            py = r % H
+            y = float(py)
+            acc = accum[c, py]
+            st = state[c, py]
+            ix = idx[c, py]
+            for px in range(W):
+                st[px, 0] = 1.0
+                ix[px, 0] = row_off[r]
+                ix[px, 1] = -1
+                done[px] = False
+            for e in range(row_off[r], row_off[r + 1]):
+                s = row_surf[e]
+                j0, j3, j6 = f[s, 0], f[s, 3], f[s, 6]
+                b0 = f[s, 1] * y + f[s, 2]
+                b1 = f[s, 4] * y + f[s, 5]
+                b2 = f[s, 7] * y + f[s, 8]
+                det, mx, my, zc, opa = f[s, _DET], f[s, _MX], f[s, _MY], f[s, _Z], f[s, _OPA]
+                dy2 = (my - y) * (my - y) * inv_lp2
+                nx, ny, nz = f[s, _NRM], f[s, _NRM + 1], f[s, _NRM + 2]
+                for px in range(span[e, 0], span[e, 1] + 1):
+                    if done[px]:
+                        continue
+                    ok, raw, rho, depth, use3, u, v, inv, d3 = _pair(
+                        float(px),
+                        j0,
+                        j3,
+                        j6,
+                        b0,
+                        b1,
+                        b2,
+                        det,
+                        mx,
+                        dy2,
+                        zc,
+                        opa,
+                        inv_lp2,
+                        use_lp,
+                        near,
+                        r2max,
+                    )
+                    if not ok:
+                        continue
+                    alpha = min(raw, a_max)
+                    if alpha < a_min:
+                        continue
+                    T = st[px, 0]
+                    after = T * (1.0 - alpha)
+                    if after < t_min:
+                        done[px] = True
+                        continue
+                    w = alpha * T
+                    m = mscale * (1.0 - near / depth)
+                    m1 = st[px, 1]
+                    m2 = st[px, 2]
+                    acc[px, D + 5] += (m * m * acc[px, D] + m2 - 2.0 * m * m1) * w
+                    for k in range(D):
+                        acc[px, k] += w * f[s, _COL + k]
+                    acc[px, D] += w
+                    acc[px, D + 1] += w * depth
+                    acc[px, D + 2] += w * nx
+                    acc[px, D + 3] += w * ny
+                    acc[px, D + 4] += w * nz
+                    st[px, 1] = m1 + w * m
+                    st[px, 2] = m2 + w * m * m
+                    if T > 0.5:
+                        ix[px, 1] = e
+                        median[c, py, px, 0] = depth
+                    st[px, 0] = after
+                    ix[px, 0] = e + 1
+    return accum, median, state, idx
+
+
+@njit(cache=True, parallel=True)
+def _backward(
+    f,
+    row_off,
+    row_surf,
+    span,
+    accum,
+    state,
+    idx,
+    ga,
+    gm,
+    C,
+    W,
+    H,
+    D,
+    near,
+    far,
+    inv_lp2,
+    use_lp,
+    r2max,
+    a_min,
+    a_max,
+    n_threads,
+):
+    """Back-to-front gradients of the packed features per (row, surfel) entry (E, F).
+
+    Each row walks its surfels in reverse depth order; a pixel's transmittance before a
+    pair is recovered as ``T / (1 − α)`` from the final one, and ``suffix`` carries
+    Σ_{later k} (∂L/∂w_k)·w_k for the transmittance's share of ∂L/∂α.
+    """
+    F = f.shape[1]
+    g = np.zeros((row_surf.shape[0], F))
+    n_rows = C * H
+    mscale = far / (far - near)
+    for th in prange(n_threads):
+        T = np.empty(W)
+        suffix = np.empty(W)
+        for r in range(th, n_rows, n_threads):
+            c = r // H
+            py = r % H
+            y = float(py)
+            acc = accum[c, py]
+            st = state[c, py]
+            ix = idx[c, py]
+            gac = ga[c, py]
+            for px in range(W):
+                T[px] = st[px, 0]
+                suffix[px] = 0.0
+            for e in range(row_off[r + 1] - 1, row_off[r] - 1, -1):
+                s = row_surf[e]
+                j0, j3, j6 = f[s, 0], f[s, 3], f[s, 6]
+                b0 = f[s, 1] * y + f[s, 2]
+                b1 = f[s, 4] * y + f[s, 5]
+                b2 = f[s, 7] * y + f[s, 8]
+                det, mx, my, zc, opa = f[s, _DET], f[s, _MX], f[s, _MY], f[s, _Z], f[s, _OPA]
+                dy2 = (my - y) * (my - y) * inv_lp2
+                nx, ny, nz = f[s, _NRM], f[s, _NRM + 1], f[s, _NRM + 2]
+                gj0 = gj1 = gj2 = gj3 = gj4 = gj5 = gj6 = gj7 = gj8 = 0.0
+                g_det = g_mx = g_my = g_zc = g_opa = gn0 = gn1 = gn2 = 0.0
+                hit_any = False
+                for px in range(span[e, 0], span[e, 1] + 1):
+                    if e >= ix[px, 0]:
+                        continue
+                    x = float(px)
+                    ok, raw, rho, depth, use3, u, v, inv, d3 = _pair(
+                        x,
+                        j0,
+                        j3,
+                        j6,
+                        b0,
+                        b1,
+                        b2,
+                        det,
+                        mx,
+                        dy2,
+                        zc,
+                        opa,
+                        inv_lp2,
+                        use_lp,
+                        near,
+                        r2max,
+                    )
+                    if not ok:
+                        continue
+                    alpha = min(raw, a_max)
+                    if alpha < a_min:
+                        continue
+                    hit_any = True
+                    Ti = T[px] / (1.0 - alpha)  # transmittance before this pair
+                    T[px] = Ti
+                    w = alpha * Ti
+                    m = mscale * (1.0 - near / depth)
+                    sw = acc[px, D]
+                    m1 = st[px, 1]
+                    m2 = st[px, 2]
+                    g_a = gac[px, D]
+                    g_z = gac[px, D + 1]
+                    g_d = gac[px, D + 5]
+                    # dL/dw with the other pairs' weights fixed.
+                    g_w = g_a + g_z * depth + g_d * (m * m * sw + m2 - 2.0 * m * m1)
+                    g_w += gac[px, D + 2] * nx + gac[px, D + 3] * ny + gac[px, D + 4] * nz
+                    for k in range(D):
+                        g_w += gac[px, k] * f[s, _COL + k]
+                        g[e, _COL + k] += gac[px, k] * w
+                    gn0 += gac[px, D + 2] * w
+                    gn1 += gac[px, D + 3] * w
+                    gn2 += gac[px, D + 4] * w
+                    g_alpha = Ti * g_w - suffix[px] / (1.0 - alpha)
+                    suffix[px] += g_w * w
+                    dm = mscale * near / (depth * depth)
+                    g_depth = g_z * w + g_d * 2.0 * w * (m * sw - m1) * dm
+                    if e == ix[px, 1]:
+                        g_depth += gm[c, py, px, 0]
+                    # alpha = min(o·exp(−ρ/2), 0.99): no gradient past the cap.
+                    g_raw = g_alpha if raw <= a_max else 0.0
+                    g_opa += g_raw * np.exp(-0.5 * rho)
+                    g_rho = -0.5 * raw * g_raw
+                    if use3:
+                        g_u = 2.0 * u * g_rho
+                        g_v = 2.0 * v * g_rho
+                        g_q0 = g_u * inv
+                        g_q1 = g_v * inv
+                        g_q2 = -(g_u * u + g_v * v) * inv - g_depth * d3 * inv
+                        g_det += g_depth * inv
+                        gj0 += g_q0 * x
+                        gj1 += g_q0 * y
+                        gj2 += g_q0
+                        gj3 += g_q1 * x
+                        gj4 += g_q1 * y
+                        gj5 += g_q1
+                        gj6 += g_q2 * x
+                        gj7 += g_q2 * y
+                        gj8 += g_q2
+                    else:
+                        g_mx += g_rho * 2.0 * (mx - x) * inv_lp2
+                        g_my += g_rho * 2.0 * (my - y) * inv_lp2
+                        g_zc += g_depth
+                if hit_any:
+                    ge = g[e]
+                    ge[0] = gj0
+                    ge[1] = gj1
+                    ge[2] = gj2
+                    ge[3] = gj3
+                    ge[4] = gj4
+                    ge[5] = gj5
+                    ge[6] = gj6
+                    ge[7] = gj7
+                    ge[8] = gj8
+                    ge[_DET] = g_det
+                    ge[_MX] = g_mx
+                    ge[_MY] = g_my
+                    ge[_Z] = g_zc
+                    ge[_OPA] = g_opa
+                    ge[_NRM] = gn0
+                    ge[_NRM + 1] = gn1
+                    ge[_NRM + 2] = gn2
+    return g
+
+
+@njit(cache=True)
+def _reduce_entries(g_entry, row_surf, n_rows):
+    """Σ of entry gradients per feature row, serially in entry order."""
+    F = g_entry.shape[1]
+    out = np.zeros((n_rows, F))
+    for e in range(row_surf.shape[0]):
+        s = row_surf[e]
+        for j in range(F):
+            out[s, j] += g_entry[e, j]
+    return out
