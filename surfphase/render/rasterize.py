@@ -39,6 +39,7 @@ from surfphase.render.projection import DEFAULT_LOW_PASS
 #: Backend name → ``"module:function"`` (imported on first use).
 BACKENDS = {
     "torch": "surfphase.render.sparse:rasterize_sparse",
+    "sparse": "surfphase.render.sparse:rasterize_sparse",
     "fused": "surfphase.render.fused:rasterize_fused",
 }
 
@@ -83,7 +84,7 @@ def rasterize_surfels(
         backend: ``"auto"`` (default: ``"fused"`` on the CPU, ``"torch"`` on CUDA),
             ``"fused"`` (:mod:`surfphase.render.fused`, numba kernels, CPU only, 5–10×
             faster than sparse on the CPU; ``max_pairs_per_chunk`` unused) or ``"torch"``
-            (:mod:`surfphase.render.sparse`, pure PyTorch, CPU or CUDA; the second
+            (alias ``"sparse"``; :mod:`surfphase.render.sparse`, pure PyTorch, CPU or CUDA; the second
             implementation the tests compare against). Both give the same outputs and
             gradients up to rounding.
 
