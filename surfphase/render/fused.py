@@ -227,6 +227,10 @@ def _row_spans(f, vbox, row_off, row_surf, row_vis, H, low_pass, n_threads):
     """
     out = np.empty((row_surf.shape[0], 2), dtype=np.int64)
     n_rows = row_off.shape[0] - 1
+    r2s = np.empty(f.shape[0])
+    for s in prange(f.shape[0]):
+        if f[s, _OPA] > 0.0:
+            r2s[s] = min(2.0 * np.log(255.0 * f[s, _OPA]), 9.0) * (1.0 + 1e-6) + 1e-6
     for th in prange(n_threads):
         for r in range(th, n_rows, n_threads):
             y = float(r % H)
@@ -235,7 +239,7 @@ def _row_spans(f, vbox, row_off, row_surf, row_vis, H, low_pass, n_threads):
                 s = row_surf[e]
                 bx0 = vbox[k, 0]
                 bx1 = vbox[k, 2]
-                r2 = min(2.0 * np.log(255.0 * f[s, _OPA]), 9.0) * (1.0 + 1e-6) + 1e-6
+                r2 = r2s[s]
                 a0, a1, a2 = f[s, 0], f[s, 3], f[s, 6]
                 q0 = f[s, 1] * y + f[s, 2]
                 q1 = f[s, 4] * y + f[s, 5]

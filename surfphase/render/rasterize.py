@@ -175,11 +175,9 @@ def finish_outputs(
 ) -> tuple[Tensor, Tensor, dict]:
     """Turn a backend's raw accumulations (C, H, W, D + 6) into the public outputs."""
     D = n_channels
-    colors = accum[..., :D]
-    alphas = accum[..., D : D + 1]
-    depth_accum = accum[..., D + 1 : D + 2]
-    normals_cam = accum[..., D + 2 : D + 5]
-    distortion = accum[..., D + 5 : D + 6]
+    # One split (its backward is one concatenation), not five slices (each of whose
+    # backwards writes a full-size zero tensor).
+    colors, alphas, depth_accum, normals_cam, distortion = accum.split([D, 1, 1, 3, 1], dim=-1)
     if backgrounds is not None:
         bg = backgrounds.to(colors)
         bg = bg.expand(accum.shape[0], D) if bg.dim() == 1 else bg
@@ -187,7 +185,7 @@ def finish_outputs(
     has = alphas > 0
     depth_expected = torch.where(has, depth_accum / torch.where(has, alphas, 1), 0)
     R = viewmats[:, :3, :3]
-    normals_world = torch.einsum("chwi,cij->chwj", normals_cam, R)
+    normals_world = _rotate_rows(normals_cam, R)
     from_depth = depth_normals(depth_expected, Ks)
     meta = {
         "depth_expected": depth_expected,
@@ -196,7 +194,7 @@ def finish_outputs(
         "normals_camera": normals_cam,
         "normals_world": normals_world,
         "normals_from_depth": from_depth,
-        "normals_from_depth_world": torch.einsum("chwi,cij->chwj", from_depth, R),
+        "normals_from_depth_world": _rotate_rows(from_depth, R),
         "distortion": distortion,
         "radii": radii,
         "visible": visible,
@@ -219,19 +217,32 @@ def depth_normals(depth: Tensor, Ks: Tensor) -> Tensor:
     ys, xs = torch.meshgrid(
         torch.arange(H, device=dev, dtype=dt), torch.arange(W, device=dev, dtype=dt), indexing="ij"
     )
-    pix = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # (H, W, 3)
-    rays = torch.einsum("cij,hwj->chwi", torch.linalg.inv(Ks.to(dt)), pix)
+    Kinv = torch.linalg.inv(Ks.to(dt))  # (C, 3, 3)
+    # rays[c, h, w, i] = Σ_j Kinv[c, i, j]·(x, y, 1)_j, written out (a 3-term sum is much
+    # cheaper than a batched matmul with k = 3 on the CPU).
+    k = Kinv[:, None, None, :, :]
+    rays = k[..., 0] * xs[None, :, :, None] + k[..., 1] * ys[None, :, :, None] + k[..., 2]
     pts = rays * depth
-    out = torch.zeros_like(pts)
     if H < 3 or W < 3:
-        return out
-    dy = pts[:, 2:, 1:-1] - pts[:, :-2, 1:-1]
-    dx = pts[:, 1:-1, 2:] - pts[:, 1:-1, :-2]
-    n = torch.linalg.cross(dy, dx)
+        return torch.zeros_like(pts)
+    dy = (pts[:, 2:, 1:-1] - pts[:, :-2, 1:-1]).unbind(-1)
+    dx = (pts[:, 1:-1, 2:] - pts[:, 1:-1, :-2]).unbind(-1)
+    n = torch.stack(
+        [
+            dy[1] * dx[2] - dy[2] * dx[1],
+            dy[2] * dx[0] - dy[0] * dx[2],
+            dy[0] * dx[1] - dy[1] * dx[0],
+        ],
+        dim=-1,
+    )
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(dt).tiny ** 0.5)
-    out = out.clone()
-    out[:, 1:-1, 1:-1] = n
-    return out
+    return torch.nn.functional.pad(n, (0, 0, 1, 1, 1, 1))
+
+
+def _rotate_rows(v: Tensor, R: Tensor) -> Tensor:
+    """``v @ R`` per camera: (C, H, W, 3) row vectors times (C, 3, 3), as 3-term sums."""
+    r = R[:, None, None, :, :]
+    return v[..., 0:1] * r[..., 0, :] + v[..., 1:2] * r[..., 1, :] + v[..., 2:3] * r[..., 2, :]
 
 
 def camera_tensors(

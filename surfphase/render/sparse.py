@@ -142,10 +142,10 @@ def prepare_surfels(
             & (opacities[None, :] * 1.0 >= ALPHA_MIN)
         )
         radii = torch.where(visible, half.amax(-1).ceil(), 0).to(torch.int32)
-        # Depth rank of every (camera, surfel) within its camera; stable on ties.
+        # Every camera's surfels in order of depth, stable on ties; then the visible ones.
         order = torch.argsort(z.detach(), dim=1, stable=True)
-        rank = torch.empty_like(order)
-        rank.scatter_(1, order, torch.arange(N, device=z.device).expand(C, N))
+        rows = order + N * torch.arange(C, device=z.device)[:, None]
+        vis_idx = rows.reshape(-1)[visible.gather(1, order).reshape(-1)]
 
     feats = torch.cat(
         [
@@ -160,11 +160,6 @@ def prepare_surfels(
         dim=-1,
     ).reshape(C * N, 17 + D)
 
-    # Surfels that can touch the image, in (camera, depth) order.
-    vis_idx = torch.nonzero(visible.reshape(-1)).squeeze(1)
-    cam_of = vis_idx // N
-    key = cam_of * N + rank.reshape(-1)[vis_idx]
-    vis_idx = vis_idx[torch.argsort(key)]
     vbox = box.reshape(-1, 4)[vis_idx]
     return {
         "proj": proj,
