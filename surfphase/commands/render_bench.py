@@ -95,28 +95,36 @@ def _run(args: argparse.Namespace) -> int:
     if args.check:
         results["check"] = {b: _check(device, b) for b in backends}
         print(f"accuracy vs reference: {json.dumps(results['check'])}", flush=True)
-    speedups = []
+    speedups, cpu_speedups = [], []
     for size, n in runs:
         per_backend = _time_run(size, n, args, device, dtype, backends)
         for b, r in zip(backends, per_backend, strict=True):
             results["runs"].append(r)
             print(
                 f"{b}: {args.cameras}x{size}x{size}, {n} surfels, {device.type}: "
-                f"median {r['median_s']:.4f} s (min {r['min_s']:.4f}), "
+                f"median {r['median_s']:.4f} s (min {r['min_s']:.4f}, "
+                f"CPU {r['cpu_median_s']:.4f} s), "
                 f"{r['pairs']} pairs, peak {r['peak_mib']:.0f} MiB "
                 f"({r['peak_above_start_mib']:.0f} MiB above the start)",
                 flush=True,
             )
         medians = {_canonical(b): r["median_s"] for b, r in zip(backends, per_backend, strict=True)}
+        cpus = {
+            _canonical(b): r["cpu_median_s"] for b, r in zip(backends, per_backend, strict=True)
+        }
         others = [b for b in dict.fromkeys(map(_canonical, backends)) if b != "torch"]
         if "torch" in medians and others:
             ratios = ", ".join(f"{medians['torch'] / medians[b]:.1f}x" for b in others)
             speedups.append(f"{ratios} at {size}:{n}")
+            ratios = ", ".join(f"{cpus['torch'] / cpus[b]:.1f}x" for b in others)
+            cpu_speedups.append(f"{ratios} at {size}:{n}")
     if speedups:
         results["speedup_over_sparse"] = speedups
+        results["cpu_time_speedup_over_sparse"] = cpu_speedups
     if args.json:
         atomic_write_json(args.json, results)
     if speedups:
+        print(f"CPU-time speedup over sparse: {', '.join(cpu_speedups)}", flush=True)
         print(f"speedup over sparse: {', '.join(speedups)}", flush=True)
     return 0
 
@@ -172,13 +180,15 @@ def _time_run(size: int, n: int, args, device, dtype, backends: list[str]) -> li
             once(b)
     sync()
     times = {b: [] for b in backends}
+    cpu = {b: [] for b in backends}
     last = {}
     for _ in range(args.repeats):
         for b in backends:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             last[b] = once(b)
             sync()
             times[b].append(time.perf_counter() - t0)
+            cpu[b].append(time.process_time() - c0)
     if device.type == "cuda":
         peak = torch.cuda.max_memory_allocated(device) / 2**20
     else:
@@ -194,6 +204,9 @@ def _time_run(size: int, n: int, args, device, dtype, backends: list[str]) -> li
                 "median_s": statistics.median(times[b]),
                 "min_s": min(times[b]),
                 "times_s": times[b],
+                # CPU seconds of the whole process (all threads): on a shared machine
+                # much steadier than the wall clock.
+                "cpu_median_s": statistics.median(cpu[b]),
                 "pairs": meta["n_pairs"],
                 "covered_fraction": float((alphas > 0.5).float().mean()),
                 "visible": int(meta["visible"].sum()),
