@@ -88,8 +88,12 @@ def rasterize_fused(
     vbox = np.ascontiguousarray(prep["vbox"].numpy().astype(np.int64))
     n_threads = _threads()
     row_off, row_surf, row_vis = _bin_rows(vis, vbox, N, C, int(height))
-    span = _row_spans(
-        f64, vbox, row_off, row_surf, row_vis, int(height), float(low_pass), n_threads
+    # Support radius² per feature row, slightly widened: min(9, 2 ln(255·o)).
+    with np.errstate(divide="ignore", invalid="ignore"):  # culled surfels
+        r2s = np.minimum(2.0 * np.log(255.0 * f64[:, _OPA]), CUTOFF * CUTOFF) * (1 + 1e-6) + 1e-6
+    span = np.empty((row_surf.shape[0], 2), dtype=np.int64)
+    _row_spans(
+        f64, r2s, vbox, row_off, row_surf, row_vis, int(height), float(low_pass), n_threads, span
     )
     n_pairs = int(np.maximum(span[:, 1] - span[:, 0] + 1, 0).sum())
     consts = (
@@ -126,7 +130,13 @@ class _FusedComposite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, feats: Tensor, f64, row_off, row_surf, span, consts):
         C, W, H, D, near, far, inv_lp2, use_lp = consts
-        accum, median, state, idx = _forward(
+        # Allocated here, not in the kernel: each array numba builds inside a parallel
+        # function is one more parallel region (one more wake-up of its workers).
+        accum = np.zeros((C, H, W, D + 6))
+        median = np.zeros((C, H, W, 1))
+        state = np.zeros((C, H, W, 3))
+        idx = np.zeros((C, H, W, 2), dtype=np.int64)
+        _forward(
             f64,
             row_off,
             row_surf,
@@ -144,6 +154,10 @@ class _FusedComposite(torch.autograd.Function):
             ALPHA_MAX,
             T_MIN,
             _threads(),
+            accum,
+            median,
+            state,
+            idx,
         )
         ctx.fused = (f64, row_off, row_surf, span, consts, accum, state, idx, feats.dtype)
         out_accum = torch.from_numpy(accum).to(feats.dtype)
@@ -156,7 +170,8 @@ class _FusedComposite(torch.autograd.Function):
         C, W, H, D, near, far, inv_lp2, use_lp = consts
         ga = _as_f64(g_accum, accum.shape)
         gm = _as_f64(g_median, (C, H, W, 1))
-        g_entry = _backward(
+        g_entry = np.zeros((row_surf.shape[0], f64.shape[1]))
+        _backward(
             f64,
             row_off,
             row_surf,
@@ -178,6 +193,7 @@ class _FusedComposite(torch.autograd.Function):
             ALPHA_MIN,
             ALPHA_MAX,
             _threads(),
+            g_entry,
         )
         g_feats = _reduce_entries(g_entry, row_surf, f64.shape[0])
         return torch.from_numpy(g_feats).to(dtype), None, None, None, None, None
@@ -216,7 +232,7 @@ def _bin_rows(vis, vbox, N, C, H):
 
 
 @njit(cache=True, parallel=True)
-def _row_spans(f, vbox, row_off, row_surf, row_vis, H, low_pass, n_threads):
+def _row_spans(f, r2s, vbox, row_off, row_surf, row_vis, H, low_pass, n_threads, out):
     """Inclusive pixel x-range (E, 2) of each (row, surfel) entry that can hold support.
 
     On row ``y`` the 3D support ``ρ3d ≤ r²`` (``r² = min(9, 2 ln(255·o))``: beyond it
@@ -224,13 +240,9 @@ def _row_spans(f, vbox, row_off, row_surf, row_vis, H, low_pass, n_threads):
     root interval is padded for rounding and joined with the low-pass disk; rows where
     the conic is not an interval (``A ≤ 0``) keep the whole box. The result is clipped to
     the surfel's box; an empty range has x1 < x0. The exact per-pair test decides later.
+    ``r2s`` (C·N,) is ``r²`` per feature row; writes ``out`` (E, 2).
     """
-    out = np.empty((row_surf.shape[0], 2), dtype=np.int64)
     n_rows = row_off.shape[0] - 1
-    r2s = np.empty(f.shape[0])
-    for s in prange(f.shape[0]):
-        if f[s, _OPA] > 0.0:
-            r2s[s] = min(2.0 * np.log(255.0 * f[s, _OPA]), 9.0) * (1.0 + 1e-6) + 1e-6
     for th in prange(n_threads):
         for r in range(th, n_rows, n_threads):
             y = float(r % H)
@@ -276,7 +288,6 @@ def _row_spans(f, vbox, row_off, row_surf, row_vis, H, low_pass, n_threads):
                 else:
                     out[e, 0] = bx0
                     out[e, 1] = bx1
-    return out
 
 
 @njit(cache=True, inline="always")
@@ -329,6 +340,10 @@ def _forward(
     a_max,
     t_min,
     n_threads,
+    accum,
+    median,
+    state,
+    idx,
 ):
     """Front-to-back compositing, one thread per interleaved set of image rows.
 
@@ -336,12 +351,8 @@ def _forward(
     pixel sees its surfels front to back. Returns ``accum`` (C, H, W, D + 6), ``median``
     (C, H, W, 1), ``state`` (C, H, W, 3) = final transmittance, Σw·m, Σw·m², and ``idx``
     (C, H, W, 2) int64 = end of the pixel's blended run (entry index, exclusive; the
-    row's first entry if none) and its median entry (−1 if none).
+    row's first entry if none) and its median entry (−1 if none); all zero on entry.
     """
-    accum = np.zeros((C, H, W, D + 6))
-    median = np.zeros((C, H, W, 1))
-    state = np.zeros((C, H, W, 3))
-    idx = np.zeros((C, H, W, 2), dtype=np.int64)
     n_rows = C * H
     mscale = far / (far - near)
     for th in prange(n_threads):
@@ -417,7 +428,6 @@ def _forward(
                         median[c, py, px, 0] = depth
                     st[px, 0] = after
                     ix[px, 0] = e + 1
-    return accum, median, state, idx
 
 
 @njit(cache=True, parallel=True)
@@ -443,15 +453,15 @@ def _backward(
     a_min,
     a_max,
     n_threads,
+    g,
 ):
-    """Back-to-front gradients of the packed features per (row, surfel) entry (E, F).
+    """Back-to-front gradients of the packed features per (row, surfel) entry, into
+    ``g`` (E, F), zero on entry.
 
     Each row walks its surfels in reverse depth order; a pixel's transmittance before a
     pair is recovered as ``T / (1 − α)`` from the final one, and ``suffix`` carries
     Σ_{later k} (∂L/∂w_k)·w_k for the transmittance's share of ∂L/∂α.
     """
-    F = f.shape[1]
-    g = np.zeros((row_surf.shape[0], F))
     n_rows = C * H
     mscale = far / (far - near)
     for th in prange(n_threads):
@@ -576,7 +586,6 @@ def _backward(
                     ge[_NRM] = gn0
                     ge[_NRM + 1] = gn1
                     ge[_NRM + 2] = gn2
-    return g
 
 
 @njit(cache=True)
