@@ -83,17 +83,21 @@ def rasterize_fused(
         means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, low_pass
     )
     feats = prep["feats"]
-    f64 = np.ascontiguousarray(feats.detach().to(torch.float64).numpy())
-    vis = np.ascontiguousarray(prep["vis_idx"].numpy().astype(np.int64))
+    vis = prep["vis_idx"].numpy().astype(np.int64)
     vbox = np.ascontiguousarray(prep["vbox"].numpy().astype(np.int64))
-    n_threads = _threads()
-    row_off, row_surf, row_vis = _bin_rows(vis, vbox, N, C, int(height))
-    # Support radius² per feature row, slightly widened: min(9, 2 ln(255·o)).
-    with np.errstate(divide="ignore", invalid="ignore"):  # culled surfels
+    # The kernels read the visible surfels' features from a table in (camera, box top,
+    # box left) order, so a row's surfels sit close together in memory; the row lists
+    # keep depth order.
+    store = np.lexsort((vbox[:, 0], vbox[:, 1], vis // max(N, 1))).astype(np.int64)
+    loc = np.empty_like(store)
+    loc[store] = np.arange(store.shape[0])
+    rows = vis[store]  # feature row (c·N + n) of each table row
+    f64 = np.ascontiguousarray(feats.detach().to(torch.float64)[torch.from_numpy(rows)].numpy())
+    # Support radius² per surfel, slightly widened: min(9, 2 ln(255·o)).
+    with np.errstate(divide="ignore", invalid="ignore"):
         r2s = np.minimum(2.0 * np.log(255.0 * f64[:, _OPA]), CUTOFF * CUTOFF) * (1 + 1e-6) + 1e-6
-    span = np.empty((row_surf.shape[0], 2), dtype=np.int64)
-    _row_spans(
-        f64, r2s, vbox, row_off, row_surf, row_vis, int(height), float(low_pass), n_threads, span
+    row_off, row_surf, span = _bin_rows(
+        vis // max(N, 1), vbox, loc, f64, r2s, C, int(height), float(low_pass)
     )
     n_pairs = int(np.maximum(span[:, 1] - span[:, 0] + 1, 0).sum())
     consts = (
@@ -106,7 +110,7 @@ def rasterize_fused(
         1.0 / (low_pass * low_pass) if low_pass > 0 else 0.0,
         bool(low_pass > 0),
     )
-    accum, median = _FusedComposite.apply(feats, f64, row_off, row_surf, span, consts)
+    accum, median = _FusedComposite.apply(feats, f64, rows, row_off, row_surf, span, consts)
     return {
         "n_pairs": n_pairs,
         "accum": accum,
@@ -128,7 +132,7 @@ class _FusedComposite(torch.autograd.Function):
     """feats (C·N, 17 + D) → accum (C, H, W, D + 6), median depth (C, H, W, 1)."""
 
     @staticmethod
-    def forward(ctx, feats: Tensor, f64, row_off, row_surf, span, consts):
+    def forward(ctx, feats: Tensor, f64, rows, row_off, row_surf, span, consts):
         C, W, H, D, near, far, inv_lp2, use_lp = consts
         # Allocated here, not in the kernel: each array numba builds inside a parallel
         # function is one more parallel region (one more wake-up of its workers).
@@ -159,14 +163,16 @@ class _FusedComposite(torch.autograd.Function):
             state,
             idx,
         )
-        ctx.fused = (f64, row_off, row_surf, span, consts, accum, state, idx, feats.dtype)
+        ctx.fused = (f64, row_off, row_surf, span, consts, accum, state, idx)
+        ctx.feat_rows = (rows, feats.shape[0], feats.dtype)
         out_accum = torch.from_numpy(accum).to(feats.dtype)
         out_median = torch.from_numpy(median).to(feats.dtype)
         return out_accum, out_median
 
     @staticmethod
     def backward(ctx, g_accum: Tensor, g_median: Tensor):
-        f64, row_off, row_surf, span, consts, accum, state, idx, dtype = ctx.fused
+        f64, row_off, row_surf, span, consts, accum, state, idx = ctx.fused
+        rows, n_feat_rows, dtype = ctx.feat_rows
         C, W, H, D, near, far, inv_lp2, use_lp = consts
         ga = _as_f64(g_accum, accum.shape)
         gm = _as_f64(g_median, (C, H, W, 1))
@@ -195,8 +201,8 @@ class _FusedComposite(torch.autograd.Function):
             _threads(),
             g_entry,
         )
-        g_feats = _reduce_entries(g_entry, row_surf, f64.shape[0])
-        return torch.from_numpy(g_feats).to(dtype), None, None, None, None, None
+        g_feats = _reduce_entries(g_entry, row_surf, rows, n_feat_rows)
+        return torch.from_numpy(g_feats).to(dtype), None, None, None, None, None, None
 
 
 def _as_f64(g: Tensor | None, shape) -> np.ndarray:
@@ -206,88 +212,78 @@ def _as_f64(g: Tensor | None, shape) -> np.ndarray:
 
 
 @njit(cache=True)
-def _bin_rows(vis, vbox, N, C, H):
-    """Per-image-row lists of visible surfels, in the order of ``vis`` (camera, depth).
+def _bin_rows(cam, vbox, loc, f, r2s, C, H, low_pass):
+    """Per-image-row lists of the visible surfels, in depth order, with their pixel spans.
 
-    Returns ``row_off`` (C·H + 1,) CSR offsets over rows ``c·H + y``, ``row_surf`` (E,)
-    the feature row (``c·N + n``) and ``row_vis`` (E,) the ``vis`` position of each
-    (row, surfel) entry.
+    ``cam`` (S,), ``vbox`` (S, 4) and ``loc`` (S,) give each visible surfel's camera, box
+    and row of the feature table ``f``, in (camera, depth) order; ``r2s`` (S,) is r² per
+    table row. Returns ``row_off`` (C·H + 1,) CSR offsets over rows ``c·H + y``,
+    ``row_surf`` (E,) the table row of each (row, surfel) entry and ``span`` (E, 2) its
+    inclusive pixel x-range that can hold support (x1 < x0 when empty).
+
+    On row ``y`` the 3D support ``ρ3d ≤ r²`` (``r² = min(9, 2 ln(255·o))``: beyond it
+    α < 1/255, slightly widened) is ``A x² + 2 B x + Cq ≤ 0`` with ``q = J·(x, y, 1)``; its
+    root interval is padded for rounding and joined with the low-pass disk; where the
+    conic is not an interval (``A ≤ 0``) the whole box is kept. The span is clipped to the
+    box; the exact per-pair test decides later.
     """
+    S = cam.shape[0]
     count = np.zeros(C * H + 1, dtype=np.int64)
-    for k in range(vis.shape[0]):
-        base = (vis[k] // N) * H + 1
+    for k in range(S):
+        base = cam[k] * H + 1
         for y in range(vbox[k, 1], vbox[k, 3] + 1):
             count[base + y] += 1
     off = np.cumsum(count)
     fill = off[:-1].copy()
     surf = np.empty(off[-1], dtype=np.int64)
-    kpos = np.empty(off[-1], dtype=np.int64)
-    for k in range(vis.shape[0]):
-        base = (vis[k] // N) * H
+    span = np.empty((off[-1], 2), dtype=np.int64)
+    for k in range(S):
+        s = loc[k]
+        base = cam[k] * H
+        bx0 = vbox[k, 0]
+        bx1 = vbox[k, 2]
+        r2 = r2s[s]
+        a0, a1, a2 = f[s, 0], f[s, 3], f[s, 6]
+        A = a0 * a0 + a1 * a1 - r2 * a2 * a2
+        mx, my = f[s, _MX], f[s, _MY]
         for y in range(vbox[k, 1], vbox[k, 3] + 1):
-            surf[fill[base + y]] = vis[k]
-            kpos[fill[base + y]] = k
+            e = fill[base + y]
             fill[base + y] += 1
-    return off, surf, kpos
-
-
-@njit(cache=True, parallel=True)
-def _row_spans(f, r2s, vbox, row_off, row_surf, row_vis, H, low_pass, n_threads, out):
-    """Inclusive pixel x-range (E, 2) of each (row, surfel) entry that can hold support.
-
-    On row ``y`` the 3D support ``ρ3d ≤ r²`` (``r² = min(9, 2 ln(255·o))``: beyond it
-    α < 1/255, slightly widened) is ``A x² + 2 B x + Cq ≤ 0`` with ``q = J·(x, y, 1)``; its
-    root interval is padded for rounding and joined with the low-pass disk; rows where
-    the conic is not an interval (``A ≤ 0``) keep the whole box. The result is clipped to
-    the surfel's box; an empty range has x1 < x0. The exact per-pair test decides later.
-    ``r2s`` (C·N,) is ``r²`` per feature row; writes ``out`` (E, 2).
-    """
-    n_rows = row_off.shape[0] - 1
-    for th in prange(n_threads):
-        for r in range(th, n_rows, n_threads):
-            y = float(r % H)
-            for e in range(row_off[r], row_off[r + 1]):
-                k = row_vis[e]
-                s = row_surf[e]
-                bx0 = vbox[k, 0]
-                bx1 = vbox[k, 2]
-                r2 = r2s[s]
-                a0, a1, a2 = f[s, 0], f[s, 3], f[s, 6]
-                q0 = f[s, 1] * y + f[s, 2]
-                q1 = f[s, 4] * y + f[s, 5]
-                q2 = f[s, 7] * y + f[s, 8]
-                A = a0 * a0 + a1 * a1 - r2 * a2 * a2
-                B = a0 * q0 + a1 * q1 - r2 * a2 * q2
-                Cq = q0 * q0 + q1 * q1 - r2 * q2 * q2
-                if A > 0.0:
-                    disc = B * B - A * Cq
-                    if disc >= 0.0:
-                        root = np.sqrt(disc)
-                        lo = (-B - root) / A
-                        hi = (-B + root) / A
-                        lo -= 1e-6 + 1e-6 * abs(lo)
-                        hi += 1e-6 + 1e-6 * abs(hi)
-                    else:
-                        lo = np.inf
-                        hi = -np.inf
-                    if low_pass > 0.0:
-                        dy = f[s, _MY] - y
-                        h2 = r2 * low_pass * low_pass - dy * dy
-                        if h2 >= 0.0:
-                            h = np.sqrt(h2) + 1e-6
-                            lo = min(lo, f[s, _MX] - h)
-                            hi = max(hi, f[s, _MX] + h)
-                    if lo > hi:
-                        out[e, 0] = 0
-                        out[e, 1] = -1
-                        continue
-                    x0 = np.ceil(max(lo, bx0 - 1.0))
-                    x1 = np.floor(min(hi, bx1 + 1.0))
-                    out[e, 0] = max(int(x0), bx0)
-                    out[e, 1] = min(int(x1), bx1)
-                else:
-                    out[e, 0] = bx0
-                    out[e, 1] = bx1
+            surf[e] = s
+            if not A > 0.0:
+                span[e, 0] = bx0
+                span[e, 1] = bx1
+                continue
+            yf = float(y)
+            q0 = f[s, 1] * yf + f[s, 2]
+            q1 = f[s, 4] * yf + f[s, 5]
+            q2 = f[s, 7] * yf + f[s, 8]
+            B = a0 * q0 + a1 * q1 - r2 * a2 * q2
+            Cq = q0 * q0 + q1 * q1 - r2 * q2 * q2
+            disc = B * B - A * Cq
+            if disc >= 0.0:
+                root = np.sqrt(disc)
+                lo = (-B - root) / A
+                hi = (-B + root) / A
+                lo -= 1e-6 + 1e-6 * abs(lo)
+                hi += 1e-6 + 1e-6 * abs(hi)
+            else:
+                lo = np.inf
+                hi = -np.inf
+            if low_pass > 0.0:
+                dy = my - yf
+                h2 = r2 * low_pass * low_pass - dy * dy
+                if h2 >= 0.0:
+                    h = np.sqrt(h2) + 1e-6
+                    lo = min(lo, mx - h)
+                    hi = max(hi, mx + h)
+            if lo > hi:
+                span[e, 0] = 0
+                span[e, 1] = -1
+                continue
+            span[e, 0] = max(int(np.ceil(max(lo, bx0 - 1.0))), bx0)
+            span[e, 1] = min(int(np.floor(min(hi, bx1 + 1.0))), bx1)
+    return off, surf, span
 
 
 @njit(cache=True, inline="always")
@@ -589,12 +585,13 @@ def _backward(
 
 
 @njit(cache=True)
-def _reduce_entries(g_entry, row_surf, n_rows):
-    """Σ of entry gradients per feature row, serially in entry order."""
+def _reduce_entries(g_entry, row_surf, rows, n_rows):
+    """Σ of entry gradients per feature row (``rows`` maps table rows to them), serially
+    in entry order."""
     F = g_entry.shape[1]
     out = np.zeros((n_rows, F))
     for e in range(row_surf.shape[0]):
-        s = row_surf[e]
+        s = rows[row_surf[e]]
         for j in range(F):
             out[s, j] += g_entry[e, j]
     return out
