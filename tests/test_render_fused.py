@@ -151,3 +151,26 @@ def test_default_backend_is_fused_on_cpu():
     fused = rasterize_surfels(**scene, backend="fused")
     for a, b in zip(default[:2], fused[:2], strict=True):
         assert torch.equal(a, b)
+
+
+def test_depth_normals_kernel_matches_pytorch():
+    """The numba depth normals (CPU, Ks without grad) against the PyTorch rule (taken
+    when Ks needs a gradient), values and gradients, with a hole of zero depth."""
+    from surfphase.render import depth_normals
+
+    g = torch.Generator().manual_seed(0)
+    depth = 1 + torch.rand(2, 9, 11, 1, generator=g, dtype=torch.float64)
+    depth[0, 2:4, 3:6] = 0
+    K = torch.tensor([[50.0, 0.3, 5.0], [0.0, 52.0, 4.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    K = K.repeat(2, 1, 1)
+    weights = torch.rand(2, 9, 11, 3, generator=g, dtype=torch.float64)
+    outs = []
+    for Ks in (K, K.clone().requires_grad_(True)):
+        d = depth.clone().requires_grad_(True)
+        n = depth_normals(d, Ks)
+        (n * weights).sum().backward()
+        outs.append((n, d.grad))
+    torch.testing.assert_close(outs[0][0], outs[1][0], rtol=0, atol=1e-14)
+    torch.testing.assert_close(outs[0][1], outs[1][1], rtol=1e-12, atol=1e-12)
+    d = (1 + torch.rand(1, 5, 6, 1, generator=g, dtype=torch.float64)).requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda x: depth_normals(x, K[:1]), (d,))

@@ -595,3 +595,123 @@ def _reduce_entries(g_entry, row_surf, rows, n_rows):
         for j in range(F):
             out[s, j] += g_entry[e, j]
     return out
+
+
+def depth_normals_fused(depth: Tensor, rays: Tensor) -> Tensor:
+    """:func:`surfphase.render.rasterize.depth_normals` on the CPU, as numba kernels.
+
+    ``depth`` (C, H, W, 1), metres; ``rays`` (C, H, W, 3) ``K⁻¹·(x, y, 1)`` per pixel (no
+    gradient flows to them). Same rule and the same gradient as the PyTorch version
+    (float64 inside, including its ``|n| ≥ sqrt(tiny)`` clamp for the input's dtype).
+    """
+    eps = torch.finfo(depth.dtype).tiny ** 0.5
+    return _DepthNormals.apply(depth, rays.detach(), eps)
+
+
+class _DepthNormals(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, depth: Tensor, rays: Tensor, eps: float):
+        d64 = np.ascontiguousarray(depth.detach().to(torch.float64)[..., 0].numpy())
+        r64 = np.ascontiguousarray(rays.to(torch.float64).numpy())
+        out = np.zeros(r64.shape)
+        _threads()
+        _depth_normals_forward(d64, r64, eps, out)
+        ctx.fused = (d64, r64, eps, depth.dtype)
+        return torch.from_numpy(out).to(depth.dtype)
+
+    @staticmethod
+    def backward(ctx, g_out: Tensor):
+        d64, r64, eps, dtype = ctx.fused
+        g = np.ascontiguousarray(g_out.detach().to(torch.float64).numpy())
+        g_dy = np.zeros(r64.shape)
+        g_dx = np.zeros(r64.shape)
+        g_d = np.zeros(d64.shape)
+        _threads()
+        _depth_normals_backward(d64, r64, eps, g, g_dy, g_dx, g_d)
+        return torch.from_numpy(g_d).to(dtype)[..., None], None, None
+
+
+@njit(cache=True, parallel=True)
+def _depth_normals_forward(d, rays, eps, out):
+    """``out[c, y, x] = normalize((P↓ − P↑) × (P→ − P←))`` with ``P = d·ray``, interior."""
+    C, H, W = d.shape
+    for r in prange(C * H):
+        c = r // H
+        y = r % H
+        if y < 1 or y > H - 2:
+            continue
+        for x in range(1, W - 1):
+            du, dd = d[c, y - 1, x], d[c, y + 1, x]
+            dl, dr = d[c, y, x - 1], d[c, y, x + 1]
+            dy0 = dd * rays[c, y + 1, x, 0] - du * rays[c, y - 1, x, 0]
+            dy1 = dd * rays[c, y + 1, x, 1] - du * rays[c, y - 1, x, 1]
+            dy2 = dd * rays[c, y + 1, x, 2] - du * rays[c, y - 1, x, 2]
+            dx0 = dr * rays[c, y, x + 1, 0] - dl * rays[c, y, x - 1, 0]
+            dx1 = dr * rays[c, y, x + 1, 1] - dl * rays[c, y, x - 1, 1]
+            dx2 = dr * rays[c, y, x + 1, 2] - dl * rays[c, y, x - 1, 2]
+            n0 = dy1 * dx2 - dy2 * dx1
+            n1 = dy2 * dx0 - dy0 * dx2
+            n2 = dy0 * dx1 - dy1 * dx0
+            norm = max(np.sqrt(n0 * n0 + n1 * n1 + n2 * n2), eps)
+            out[c, y, x, 0] = n0 / norm
+            out[c, y, x, 1] = n1 / norm
+            out[c, y, x, 2] = n2 / norm
+
+
+@njit(cache=True, parallel=True)
+def _depth_normals_backward(d, rays, eps, g, g_dy, g_dx, g_d):
+    """Gradient of the depth normals w.r.t. the depth, in two row-parallel passes: each
+    interior pixel's gradients of its two differences, then each pixel gathers its share
+    from its four neighbours (no two threads write the same number)."""
+    C, H, W = d.shape
+    for r in prange(C * H):
+        c = r // H
+        y = r % H
+        if y < 1 or y > H - 2:
+            continue
+        for x in range(1, W - 1):
+            du, dd = d[c, y - 1, x], d[c, y + 1, x]
+            dl, dr = d[c, y, x - 1], d[c, y, x + 1]
+            dy0 = dd * rays[c, y + 1, x, 0] - du * rays[c, y - 1, x, 0]
+            dy1 = dd * rays[c, y + 1, x, 1] - du * rays[c, y - 1, x, 1]
+            dy2 = dd * rays[c, y + 1, x, 2] - du * rays[c, y - 1, x, 2]
+            dx0 = dr * rays[c, y, x + 1, 0] - dl * rays[c, y, x - 1, 0]
+            dx1 = dr * rays[c, y, x + 1, 1] - dl * rays[c, y, x - 1, 1]
+            dx2 = dr * rays[c, y, x + 1, 2] - dl * rays[c, y, x - 1, 2]
+            n0 = dy1 * dx2 - dy2 * dx1
+            n1 = dy2 * dx0 - dy0 * dx2
+            n2 = dy0 * dx1 - dy1 * dx0
+            length = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+            norm = max(length, eps)
+            g0, g1, g2 = g[c, y, x, 0], g[c, y, x, 1], g[c, y, x, 2]
+            # out = n / max(|n|, eps): the norm's share only where it is not clamped.
+            gn0, gn1, gn2 = g0 / norm, g1 / norm, g2 / norm
+            if length >= eps and length > 0.0:
+                k = (g0 * n0 + g1 * n1 + g2 * n2) / (norm * norm * length)
+                gn0 -= k * n0
+                gn1 -= k * n1
+                gn2 -= k * n2
+            # n = dy × dx: ∂/∂dy = dx × g_n, ∂/∂dx = g_n × dy.
+            g_dy[c, y, x, 0] = dx1 * gn2 - dx2 * gn1
+            g_dy[c, y, x, 1] = dx2 * gn0 - dx0 * gn2
+            g_dy[c, y, x, 2] = dx0 * gn1 - dx1 * gn0
+            g_dx[c, y, x, 0] = gn1 * dy2 - gn2 * dy1
+            g_dx[c, y, x, 1] = gn2 * dy0 - gn0 * dy2
+            g_dx[c, y, x, 2] = gn0 * dy1 - gn1 * dy0
+    for r in prange(C * H):
+        c = r // H
+        y = r % H
+        for x in range(W):
+            acc = 0.0
+            for i in range(3):
+                gp = 0.0
+                if y >= 2:  # pixel (y − 1, x) is interior only if 1 ≤ y − 1 ≤ H − 2
+                    gp += g_dy[c, y - 1, x, i]
+                if y + 1 <= H - 2:
+                    gp -= g_dy[c, y + 1, x, i]
+                if x >= 2:
+                    gp += g_dx[c, y, x - 1, i]
+                if x + 1 <= W - 2:
+                    gp -= g_dx[c, y, x + 1, i]
+                acc += gp * rays[c, y, x, i]
+            g_d[c, y, x] = acc

@@ -210,7 +210,8 @@ def depth_normals(depth: Tensor, Ks: Tensor) -> Tensor:
 
     Back-projects pixel ``(x, y)`` to ``z·K⁻¹(x, y, 1)``, takes central differences along
     rows and columns, and returns ``normalize(∂P/∂y × ∂P/∂x)`` (facing the camera for a
-    visible surface). The one-pixel border is zero.
+    visible surface). The one-pixel border is zero. On the CPU (when ``Ks`` needs no
+    gradient) this runs as numba kernels (:func:`surfphase.render.fused.depth_normals_fused`).
     """
     C, H, W, _ = depth.shape
     dev, dt = depth.device, depth.dtype
@@ -222,6 +223,10 @@ def depth_normals(depth: Tensor, Ks: Tensor) -> Tensor:
     # cheaper than a batched matmul with k = 3 on the CPU).
     k = Kinv[:, None, None, :, :]
     rays = k[..., 0] * xs[None, :, :, None] + k[..., 1] * ys[None, :, :, None] + k[..., 2]
+    if depth.device.type == "cpu" and not Ks.requires_grad:
+        from surfphase.render.fused import depth_normals_fused
+
+        return depth_normals_fused(depth, rays)
     pts = rays * depth
     if H < 3 or W < 3:
         return torch.zeros_like(pts)
