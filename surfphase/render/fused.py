@@ -19,8 +19,13 @@ forward and backward are numba kernels:
 * **backward** (parallel over rows): each row walks its surfels in reverse, recovering a
   pixel's transmittance before each pair as ``T / (1 − α)`` (as 2DGS and gsplat do), and
   sums each (row, surfel) entry's gradient of the packed features over its pixels into
-  that entry's slot — every slot belongs to one row, so to one thread; a column-parallel
-  loop then sums the entries into the per-surfel gradient in entry order.
+  that entry's slot — every slot belongs to one row, so to one thread; a serial loop
+  then sums the entries into the per-surfel gradient in entry order.
+
+The kernels read the visible surfels' features from a float64 table in (camera, box top,
+box left) order, so one row's surfels sit close together in memory (the row lists keep
+depth order). :func:`depth_normals_fused` is the CPU form of
+:func:`surfphase.render.rasterize.depth_normals` (both CPU backends use it).
 
 No two threads ever add into the same number, and every sum runs in a fixed order, so the
 results are bit-for-bit identical from run to run and for any thread count. Inside the
