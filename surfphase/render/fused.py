@@ -216,7 +216,7 @@ def _as_f64(g: Tensor | None, shape) -> np.ndarray:
     return np.ascontiguousarray(g.detach().to(torch.float64).numpy())
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _bin_rows(cam, vbox, loc, f, r2s, C, H, low_pass):
     """Per-image-row lists of the visible surfels, in depth order, with their pixel spans.
 
@@ -232,63 +232,71 @@ def _bin_rows(cam, vbox, loc, f, r2s, C, H, low_pass):
     conic is not an interval (``A ≤ 0``) the whole box is kept. The span is clipped to the
     box; the exact per-pair test decides later.
     """
-    S = cam.shape[0]
+    # Cameras touch disjoint rows: one thread per camera, each in depth order.
+    first = np.searchsorted(cam, np.arange(C + 1))
     count = np.zeros(C * H + 1, dtype=np.int64)
-    for k in range(S):
-        base = cam[k] * H + 1
-        for y in range(vbox[k, 1], vbox[k, 3] + 1):
-            count[base + y] += 1
+    for c in prange(C):
+        for k in range(first[c], first[c + 1]):
+            for y in range(vbox[k, 1], vbox[k, 3] + 1):
+                count[c * H + y + 1] += 1
     off = np.cumsum(count)
     fill = off[:-1].copy()
     surf = np.empty(off[-1], dtype=np.int64)
     span = np.empty((off[-1], 2), dtype=np.int64)
-    for k in range(S):
-        s = loc[k]
-        base = cam[k] * H
-        bx0 = vbox[k, 0]
-        bx1 = vbox[k, 2]
-        r2 = r2s[s]
-        a0, a1, a2 = f[s, 0], f[s, 3], f[s, 6]
-        A = a0 * a0 + a1 * a1 - r2 * a2 * a2
-        mx, my = f[s, _MX], f[s, _MY]
-        for y in range(vbox[k, 1], vbox[k, 3] + 1):
-            e = fill[base + y]
-            fill[base + y] += 1
-            surf[e] = s
-            if not A > 0.0:
-                span[e, 0] = bx0
-                span[e, 1] = bx1
-                continue
-            yf = float(y)
-            q0 = f[s, 1] * yf + f[s, 2]
-            q1 = f[s, 4] * yf + f[s, 5]
-            q2 = f[s, 7] * yf + f[s, 8]
-            B = a0 * q0 + a1 * q1 - r2 * a2 * q2
-            Cq = q0 * q0 + q1 * q1 - r2 * q2 * q2
-            disc = B * B - A * Cq
-            if disc >= 0.0:
-                root = np.sqrt(disc)
-                lo = (-B - root) / A
-                hi = (-B + root) / A
-                lo -= 1e-6 + 1e-6 * abs(lo)
-                hi += 1e-6 + 1e-6 * abs(hi)
-            else:
-                lo = np.inf
-                hi = -np.inf
-            if low_pass > 0.0:
-                dy = my - yf
-                h2 = r2 * low_pass * low_pass - dy * dy
-                if h2 >= 0.0:
-                    h = np.sqrt(h2) + 1e-6
-                    lo = min(lo, mx - h)
-                    hi = max(hi, mx + h)
-            if lo > hi:
-                span[e, 0] = 0
-                span[e, 1] = -1
-                continue
-            span[e, 0] = max(int(np.ceil(max(lo, bx0 - 1.0))), bx0)
-            span[e, 1] = min(int(np.floor(min(hi, bx1 + 1.0))), bx1)
+    for c in prange(C):
+        for k in range(first[c], first[c + 1]):
+            _bin_one(k, cam, vbox, loc, f, r2s, H, low_pass, fill, surf, span)
     return off, surf, span
+
+
+@njit(cache=True, inline="always")
+def _bin_one(k, cam, vbox, loc, f, r2s, H, low_pass, fill, surf, span):
+    """List visible surfel ``k`` in the rows of its box, with each row's span."""
+    s = loc[k]
+    base = cam[k] * H
+    bx0 = vbox[k, 0]
+    bx1 = vbox[k, 2]
+    r2 = r2s[s]
+    a0, a1, a2 = f[s, 0], f[s, 3], f[s, 6]
+    A = a0 * a0 + a1 * a1 - r2 * a2 * a2
+    mx, my = f[s, _MX], f[s, _MY]
+    for y in range(vbox[k, 1], vbox[k, 3] + 1):
+        e = fill[base + y]
+        fill[base + y] += 1
+        surf[e] = s
+        if not A > 0.0:
+            span[e, 0] = bx0
+            span[e, 1] = bx1
+            continue
+        yf = float(y)
+        q0 = f[s, 1] * yf + f[s, 2]
+        q1 = f[s, 4] * yf + f[s, 5]
+        q2 = f[s, 7] * yf + f[s, 8]
+        B = a0 * q0 + a1 * q1 - r2 * a2 * q2
+        Cq = q0 * q0 + q1 * q1 - r2 * q2 * q2
+        disc = B * B - A * Cq
+        if disc >= 0.0:
+            root = np.sqrt(disc)
+            lo = (-B - root) / A
+            hi = (-B + root) / A
+            lo -= 1e-6 + 1e-6 * abs(lo)
+            hi += 1e-6 + 1e-6 * abs(hi)
+        else:
+            lo = np.inf
+            hi = -np.inf
+        if low_pass > 0.0:
+            dy = my - yf
+            h2 = r2 * low_pass * low_pass - dy * dy
+            if h2 >= 0.0:
+                h = np.sqrt(h2) + 1e-6
+                lo = min(lo, mx - h)
+                hi = max(hi, mx + h)
+        if lo > hi:
+            span[e, 0] = 0
+            span[e, 1] = -1
+            continue
+        span[e, 0] = max(int(np.ceil(max(lo, bx0 - 1.0))), bx0)
+        span[e, 1] = min(int(np.floor(min(hi, bx1 + 1.0))), bx1)
 
 
 @njit(cache=True, inline="always")
