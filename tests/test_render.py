@@ -3,17 +3,23 @@
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import numpy as np
 import pytest
 import torch
 
 from surfphase.cameras import look_at
-from surfphase.render import camera_tensors, rasterize_surfels
+from surfphase.render import camera_tensors
+from surfphase.render import rasterize_surfels as _rasterize_surfels
 from surfphase.render.reference import rasterize_surfels_reference
 from surfphase.render.scenes import sphere_scene
 
 torch.set_num_threads(2)
+
+# These tests pin the sparse PyTorch backend (the reference implementation that
+# tests/test_render_fused.py compares the default, fused CPU backend against).
+rasterize_surfels = partial(_rasterize_surfels, backend="torch")
 
 OUTPUTS = (
     "depth_expected",
@@ -255,7 +261,7 @@ def test_camera_tensors_project_like_camera():
 def test_bad_input_is_a_value_error():
     scene = random_scene(3, 1, 8, 8, torch.float32)
     with pytest.raises(ValueError, match="backend"):
-        rasterize_surfels(**scene, backend="cuda-magic")
+        _rasterize_surfels(**scene, backend="cuda-magic")
     with pytest.raises(ValueError, match="quats"):
         rasterize_surfels(**{**scene, "quats": scene["quats"][:, :3]})
     with pytest.raises(ValueError, match="near"):

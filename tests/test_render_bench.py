@@ -43,3 +43,24 @@ def test_bench_render_writes_results(tmp_path, capsys):
     assert len(run["times_s"]) == 2 and run["median_s"] > 0
     assert run["pairs"] > 1000 and run["visible"] > 100
     assert "32x32" in capsys.readouterr().out
+
+
+def test_bench_render_compares_backends(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    argv = ["bench", "render", "--runs", "24:100,32:200", "--backends", "sparse,fused"]
+    argv += ["--repeats", "1", "--warmup", "0", "--threads", "1", "--json", str(out)]
+    assert main(argv) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[-1].startswith("speedup over sparse: ") and lines[-1].endswith("x at 32:200")
+    assert " at 24:100, " in lines[-1]
+    data = json.loads(out.read_text())
+    runs = data["runs"]
+    assert [(r["backend"], r["size"]) for r in runs] == [
+        ("sparse", 24),
+        ("fused", 24),
+        ("sparse", 32),
+        ("fused", 32),
+    ]
+    # Both backends test the same candidate pairs on the same scene.
+    assert runs[0]["pairs"] == runs[1]["pairs"] and runs[2]["pairs"] == runs[3]["pairs"]
+    assert all(r["median_s"] > 0 and r["cpu_median_s"] > 0 for r in runs)

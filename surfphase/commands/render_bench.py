@@ -24,12 +24,21 @@ def register_bench(bench_subparsers) -> None:
         help="rasterize_surfels forward+backward timings (and accuracy vs brute force)",
         description="Times forward + backward of rasterize_surfels on sphere scenes "
         "(surfphase.render.scenes.sphere_scene) and reports median seconds, pair counts "
-        "and peak memory; --check also compares against the brute-force reference.",
+        "and peak memory; --check also compares against the brute-force reference. "
+        "With several --backends their repetitions are interleaved (a shared machine's "
+        "load hits all alike) and, when sparse is one of them, the last line is each "
+        "other backend's speedup over sparse per run.",
     )
     p.add_argument(
         "--runs",
         default="128:5000,256:20000",
         help="comma-separated SIZE:SURFELS image sizes (square) and surfel counts",
+    )
+    p.add_argument(
+        "--backends",
+        default="auto",
+        help="comma-separated rasterizer backends to time: auto (fused on the CPU, torch "
+        "on CUDA), fused, sparse (= torch)",
     )
     p.add_argument("--cameras", type=int, default=2, help="cameras per render")
     p.add_argument("--device", default="cpu", help="auto, cpu or cuda")
@@ -68,6 +77,9 @@ def _run(args: argparse.Namespace) -> int:
         except ValueError as e:
             raise ValueError(f"--runs: expected SIZE:SURFELS, got {item!r}") from e
         runs.append((size, n))
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    if not backends:
+        raise ValueError("--backends: give at least one backend")
     results = {
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
@@ -77,27 +89,53 @@ def _run(args: argparse.Namespace) -> int:
         "dtype": args.dtype,
         "max_pairs_per_chunk": args.max_pairs_per_chunk,
         "forward_only": args.forward_only,
+        "backends": backends,
         "runs": [],
     }
     if args.check:
-        results["check"] = _check(device)
+        results["check"] = {b: _check(device, b) for b in backends}
         print(f"accuracy vs reference: {json.dumps(results['check'])}", flush=True)
+    speedups, cpu_speedups = [], []
     for size, n in runs:
-        r = _time_run(size, n, args, device, dtype)
-        results["runs"].append(r)
-        print(
-            f"{args.cameras}x{size}x{size}, {n} surfels, {device.type}: "
-            f"median {r['median_s']:.4f} s (min {r['min_s']:.4f}), "
-            f"{r['pairs']} pairs, peak {r['peak_mib']:.0f} MiB "
-            f"({r['peak_above_start_mib']:.0f} MiB above the start)",
-            flush=True,
-        )
+        per_backend = _time_run(size, n, args, device, dtype, backends)
+        for b, r in zip(backends, per_backend, strict=True):
+            results["runs"].append(r)
+            print(
+                f"{b}: {args.cameras}x{size}x{size}, {n} surfels, {device.type}: "
+                f"median {r['median_s']:.4f} s (min {r['min_s']:.4f}, "
+                f"CPU {r['cpu_median_s']:.4f} s), "
+                f"{r['pairs']} pairs, peak {r['peak_mib']:.0f} MiB "
+                f"({r['peak_above_start_mib']:.0f} MiB above the start)",
+                flush=True,
+            )
+        medians = {_canonical(b): r["median_s"] for b, r in zip(backends, per_backend, strict=True)}
+        cpus = {
+            _canonical(b): r["cpu_median_s"] for b, r in zip(backends, per_backend, strict=True)
+        }
+        others = [b for b in dict.fromkeys(map(_canonical, backends)) if b != "torch"]
+        if "torch" in medians and others:
+            ratios = ", ".join(f"{medians['torch'] / medians[b]:.1f}x" for b in others)
+            speedups.append(f"{ratios} at {size}:{n}")
+            ratios = ", ".join(f"{cpus['torch'] / cpus[b]:.1f}x" for b in others)
+            cpu_speedups.append(f"{ratios} at {size}:{n}")
+    if speedups:
+        results["speedup_over_sparse"] = speedups
+        results["cpu_time_speedup_over_sparse"] = cpu_speedups
     if args.json:
         atomic_write_json(args.json, results)
+    if speedups:
+        print(f"CPU-time speedup over sparse: {', '.join(cpu_speedups)}", flush=True)
+        print(f"speedup over sparse: {', '.join(speedups)}", flush=True)
     return 0
 
 
-def _time_run(size: int, n: int, args, device, dtype) -> dict:
+def _canonical(backend: str) -> str:
+    """Bench names → rasterizer backends: ``sparse`` is ``torch``."""
+    return "torch" if backend == "sparse" else backend
+
+
+def _time_run(size: int, n: int, args, device, dtype, backends: list[str]) -> list[dict]:
+    """Time each backend on one scene, repetitions interleaved; one result per backend."""
     import torch
 
     from surfphase.render import rasterize_surfels
@@ -106,14 +144,14 @@ def _time_run(size: int, n: int, args, device, dtype) -> dict:
     scene = sphere_scene(n, args.cameras, size, seed=0, dtype=dtype, device=device)
     names = ["means", "quats", "scales", "opacities", "colors"]
 
-    def once() -> tuple[torch.Tensor, dict]:
-        kw = dict(scene)
+    def once(backend: str) -> tuple[torch.Tensor, dict]:
+        kw = dict(scene, max_pairs_per_chunk=args.max_pairs_per_chunk, backend=backend)
         if args.forward_only:
             with torch.no_grad():
-                return rasterize_surfels(**kw, max_pairs_per_chunk=args.max_pairs_per_chunk)[1:]
+                return rasterize_surfels(**kw)[1:]
         for k in names:
             kw[k] = scene[k].detach().requires_grad_(True)
-        colors, alphas, meta = rasterize_surfels(**kw, max_pairs_per_chunk=args.max_pairs_per_chunk)
+        colors, alphas, meta = rasterize_surfels(**kw)
         loss = (
             colors.sum()
             + meta["depth_expected"].sum()
@@ -129,7 +167,8 @@ def _time_run(size: int, n: int, args, device, dtype) -> dict:
         if device.type == "cuda":
             torch.cuda.synchronize(device)
 
-    # Memory is measured from here (scene built, nothing rendered yet) to the end.
+    # Memory is measured from here (scene built, nothing rendered yet) to the end, over
+    # all backends together.
     sync()
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -137,36 +176,51 @@ def _time_run(size: int, n: int, args, device, dtype) -> dict:
     else:
         base = _reset_peak_rss()
     for _ in range(args.warmup):
-        once()
+        for b in backends:
+            once(b)
     sync()
-    times = []
+    times = {b: [] for b in backends}
+    cpu = {b: [] for b in backends}
+    last = {}
     for _ in range(args.repeats):
-        t0 = time.perf_counter()
-        alphas, meta = once()
-        sync()
-        times.append(time.perf_counter() - t0)
+        for b in backends:
+            t0, c0 = time.perf_counter(), time.process_time()
+            last[b] = once(b)
+            sync()
+            times[b].append(time.perf_counter() - t0)
+            cpu[b].append(time.process_time() - c0)
     if device.type == "cuda":
         peak = torch.cuda.max_memory_allocated(device) / 2**20
     else:
         peak = _peak_rss_mib()
-    return {
-        "size": size,
-        "surfels": n,
-        "median_s": statistics.median(times),
-        "min_s": min(times),
-        "times_s": times,
-        "pairs": meta["n_pairs"],
-        "covered_fraction": float((alphas > 0.5).float().mean()),
-        "visible": int(meta["visible"].sum()),
-        "peak_mib": peak,
-        "peak_above_start_mib": peak - base,
-        "peak_kind": "cuda max_memory_allocated"
-        if device.type == "cuda"
-        else "process peak RSS (VmHWM, reset before the first render)",
-    }
+    out = []
+    for b in backends:
+        alphas, meta = last[b]
+        out.append(
+            {
+                "backend": b,
+                "size": size,
+                "surfels": n,
+                "median_s": statistics.median(times[b]),
+                "min_s": min(times[b]),
+                "times_s": times[b],
+                # CPU seconds of the whole process (all threads): on a shared machine
+                # much steadier than the wall clock.
+                "cpu_median_s": statistics.median(cpu[b]),
+                "pairs": meta["n_pairs"],
+                "covered_fraction": float((alphas > 0.5).float().mean()),
+                "visible": int(meta["visible"].sum()),
+                "peak_mib": peak,
+                "peak_above_start_mib": peak - base,
+                "peak_kind": "cuda max_memory_allocated"
+                if device.type == "cuda"
+                else "process peak RSS (VmHWM, reset before the first render; all backends)",
+            }
+        )
+    return out
 
 
-def _check(device) -> dict:
+def _check(device, backend: str = "auto") -> dict:
     import torch
 
     from surfphase.render import rasterize_surfels
@@ -177,7 +231,7 @@ def _check(device) -> dict:
     for dtype in (torch.float64, torch.float32):
         scene = sphere_scene(60, 2, 48, seed=1, dtype=dtype, device=device)
         scene["width"], scene["height"] = 48, 40
-        colors, alphas, meta = rasterize_surfels(**scene)
+        colors, alphas, meta = rasterize_surfels(**scene, backend=_canonical(backend))
         ref = rasterize_surfels_reference(**scene)
         errs = {"colors": (colors - ref["colors"]).abs().max().item()}
         errs["alphas"] = (alphas - ref["alphas"]).abs().max().item()

@@ -19,7 +19,8 @@ Differences from 2DGS's CUDA rasterizer, on purpose: its footprint cut-off depen
 the low-pass term is centred on the projected surfel centre (2DGS: the centre of the
 projected 3σ ellipse's box, which differs slightly under perspective).
 
-Backends: ``backend`` names an entry of :data:`BACKENDS`, a function with the signature
+Backends: ``backend`` names an entry of :data:`BACKENDS` (``"auto"``: the fused numba
+backend on the CPU, the sparse PyTorch one on CUDA), a function with the signature
 of :func:`surfphase.render.sparse.rasterize_sparse` returning the same raw
 accumulations; :func:`finish_outputs` turns those into the public outputs, so a fused
 (e.g. Triton) backend only has to produce per-pixel sums and per-surfel buffers.
@@ -36,7 +37,11 @@ from surfphase.cameras import Camera
 from surfphase.render.projection import DEFAULT_LOW_PASS
 
 #: Backend name → ``"module:function"`` (imported on first use).
-BACKENDS = {"torch": "surfphase.render.sparse:rasterize_sparse"}
+BACKENDS = {
+    "torch": "surfphase.render.sparse:rasterize_sparse",
+    "sparse": "surfphase.render.sparse:rasterize_sparse",
+    "fused": "surfphase.render.fused:rasterize_fused",
+}
 
 
 def rasterize_surfels(
@@ -54,7 +59,7 @@ def rasterize_surfels(
     backgrounds: Tensor | None = None,
     low_pass: float = DEFAULT_LOW_PASS,
     max_pairs_per_chunk: int = 4_000_000,
-    backend: str = "torch",
+    backend: str = "auto",
 ) -> tuple[Tensor, Tensor, dict]:
     """Render N surfels into C cameras (differentiable).
 
@@ -76,8 +81,12 @@ def rasterize_surfels(
             at most this many candidate (pixel, surfel) pairs (at least one row per band);
             with several bands each is recomputed in the backward pass (checkpointing).
             In float32 a band's peak is roughly 250 (CUDA) to 400 (CPU) bytes per pair.
-        backend: ``"torch"`` (sparse pure PyTorch, CPU or CUDA). Other backends (e.g. a
-            fused Triton kernel) slot in here with the same inputs and outputs.
+        backend: ``"auto"`` (default: ``"fused"`` on the CPU, ``"torch"`` on CUDA),
+            ``"fused"`` (:mod:`surfphase.render.fused`, numba kernels, CPU only, 5–10×
+            faster than sparse on the CPU; ``max_pairs_per_chunk`` unused) or ``"torch"``
+            (alias ``"sparse"``; :mod:`surfphase.render.sparse`, pure PyTorch, CPU or CUDA; the second
+            implementation the tests compare against). Both give the same outputs and
+            gradients up to rounding.
 
     Returns:
         ``render_colors`` (C, H, W, D): Σ w·colour + (1 − alpha)·background;
@@ -115,6 +124,8 @@ def rasterize_surfels(
         raise ValueError(f"rasterize_surfels: low_pass must be ≥ 0, got {low_pass}")
     if max_pairs_per_chunk < 1:
         raise ValueError("rasterize_surfels: max_pairs_per_chunk must be ≥ 1")
+    if backend == "auto":
+        backend = "fused" if means.device.type == "cpu" else "torch"
     if backend not in BACKENDS:
         raise ValueError(
             f"rasterize_surfels: unknown backend {backend!r}; known: {', '.join(BACKENDS)}"
@@ -164,11 +175,9 @@ def finish_outputs(
 ) -> tuple[Tensor, Tensor, dict]:
     """Turn a backend's raw accumulations (C, H, W, D + 6) into the public outputs."""
     D = n_channels
-    colors = accum[..., :D]
-    alphas = accum[..., D : D + 1]
-    depth_accum = accum[..., D + 1 : D + 2]
-    normals_cam = accum[..., D + 2 : D + 5]
-    distortion = accum[..., D + 5 : D + 6]
+    # One split (its backward is one concatenation), not five slices (each of whose
+    # backwards writes a full-size zero tensor).
+    colors, alphas, depth_accum, normals_cam, distortion = accum.split([D, 1, 1, 3, 1], dim=-1)
     if backgrounds is not None:
         bg = backgrounds.to(colors)
         bg = bg.expand(accum.shape[0], D) if bg.dim() == 1 else bg
@@ -176,7 +185,7 @@ def finish_outputs(
     has = alphas > 0
     depth_expected = torch.where(has, depth_accum / torch.where(has, alphas, 1), 0)
     R = viewmats[:, :3, :3]
-    normals_world = torch.einsum("chwi,cij->chwj", normals_cam, R)
+    normals_world = _rotate_rows(normals_cam, R)
     from_depth = depth_normals(depth_expected, Ks)
     meta = {
         "depth_expected": depth_expected,
@@ -185,7 +194,7 @@ def finish_outputs(
         "normals_camera": normals_cam,
         "normals_world": normals_world,
         "normals_from_depth": from_depth,
-        "normals_from_depth_world": torch.einsum("chwi,cij->chwj", from_depth, R),
+        "normals_from_depth_world": _rotate_rows(from_depth, R),
         "distortion": distortion,
         "radii": radii,
         "visible": visible,
@@ -201,26 +210,44 @@ def depth_normals(depth: Tensor, Ks: Tensor) -> Tensor:
 
     Back-projects pixel ``(x, y)`` to ``z·K⁻¹(x, y, 1)``, takes central differences along
     rows and columns, and returns ``normalize(∂P/∂y × ∂P/∂x)`` (facing the camera for a
-    visible surface). The one-pixel border is zero.
+    visible surface). The one-pixel border is zero. On the CPU (when ``Ks`` needs no
+    gradient) this runs as numba kernels (:func:`surfphase.render.fused.depth_normals_fused`).
     """
     C, H, W, _ = depth.shape
     dev, dt = depth.device, depth.dtype
     ys, xs = torch.meshgrid(
         torch.arange(H, device=dev, dtype=dt), torch.arange(W, device=dev, dtype=dt), indexing="ij"
     )
-    pix = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # (H, W, 3)
-    rays = torch.einsum("cij,hwj->chwi", torch.linalg.inv(Ks.to(dt)), pix)
+    Kinv = torch.linalg.inv(Ks.to(dt))  # (C, 3, 3)
+    # rays[c, h, w, i] = Σ_j Kinv[c, i, j]·(x, y, 1)_j, written out (a 3-term sum is much
+    # cheaper than a batched matmul with k = 3 on the CPU).
+    k = Kinv[:, None, None, :, :]
+    rays = k[..., 0] * xs[None, :, :, None] + k[..., 1] * ys[None, :, :, None] + k[..., 2]
+    if depth.device.type == "cpu" and not Ks.requires_grad:
+        from surfphase.render.fused import depth_normals_fused
+
+        return depth_normals_fused(depth, rays)
     pts = rays * depth
-    out = torch.zeros_like(pts)
     if H < 3 or W < 3:
-        return out
-    dy = pts[:, 2:, 1:-1] - pts[:, :-2, 1:-1]
-    dx = pts[:, 1:-1, 2:] - pts[:, 1:-1, :-2]
-    n = torch.linalg.cross(dy, dx)
+        return torch.zeros_like(pts)
+    dy = (pts[:, 2:, 1:-1] - pts[:, :-2, 1:-1]).unbind(-1)
+    dx = (pts[:, 1:-1, 2:] - pts[:, 1:-1, :-2]).unbind(-1)
+    n = torch.stack(
+        [
+            dy[1] * dx[2] - dy[2] * dx[1],
+            dy[2] * dx[0] - dy[0] * dx[2],
+            dy[0] * dx[1] - dy[1] * dx[0],
+        ],
+        dim=-1,
+    )
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(dt).tiny ** 0.5)
-    out = out.clone()
-    out[:, 1:-1, 1:-1] = n
-    return out
+    return torch.nn.functional.pad(n, (0, 0, 1, 1, 1, 1))
+
+
+def _rotate_rows(v: Tensor, R: Tensor) -> Tensor:
+    """``v @ R`` per camera: (C, H, W, 3) row vectors times (C, 3, 3), as 3-term sums."""
+    r = R[:, None, None, :, :]
+    return v[..., 0:1] * r[..., 0, :] + v[..., 1:2] * r[..., 1, :] + v[..., 2:3] * r[..., 2, :]
 
 
 def camera_tensors(

@@ -55,45 +55,15 @@ def rasterize_sparse(
     """
     C, N = viewmats.shape[0], means.shape[0]
     D = colors.shape[-1]
-    proj = project_surfels(means, quats, scales, viewmats, Ks)
-    z = proj["depth"]
-    box, half = bounding_boxes(proj["M"], proj["means2d"].detach(), low_pass, width, height)
-    with torch.no_grad():
-        visible = (
-            (z >= near)
-            & (z <= far)
-            & (box[..., 0] <= box[..., 2])
-            & (box[..., 1] <= box[..., 3])
-            & (opacities[None, :] * 1.0 >= ALPHA_MIN)
-        )
-        radii = torch.where(visible, half.amax(-1).ceil(), 0).to(torch.int32)
-        # Depth rank of every (camera, surfel) within its camera; stable on ties.
-        order = torch.argsort(z.detach(), dim=1, stable=True)
-        rank = torch.empty_like(order)
-        rank.scatter_(1, order, torch.arange(N, device=z.device).expand(C, N))
-
-    feats = torch.cat(
-        [
-            proj["J"].reshape(C, N, 9),
-            proj["det"][..., None],
-            proj["means2d"],
-            z[..., None],
-            opacities[None, :, None].expand(C, N, 1),
-            proj["normals_camera"],
-            colors if colors.dim() == 3 else colors[None].expand(C, N, D),
-        ],
-        dim=-1,
-    ).reshape(C * N, 17 + D)
+    prep = prepare_surfels(
+        means, quats, scales, opacities, colors, viewmats, Ks, width, height, near, far, low_pass
+    )
+    proj, visible, radii, vis_idx, vbox = (
+        prep[k] for k in ("proj", "visible", "radii", "vis_idx", "vbox")
+    )
     # Feature-major: per-pair values are gathered column by column (1-D gathers and
     # 1-D index_add backwards are much faster than row gathers plus transposes).
-    feats = feats.t().contiguous()
-
-    # Surfels that can touch the image, in (camera, depth) order.
-    vis_idx = torch.nonzero(visible.reshape(-1)).squeeze(1)
-    cam_of = vis_idx // N
-    key = cam_of * N + rank.reshape(-1)[vis_idx]
-    vis_idx = vis_idx[torch.argsort(key)]
-    vbox = box.reshape(-1, 4)[vis_idx]
+    feats = prep["feats"].t().contiguous()
     with torch.no_grad():
         # Support test per (surfel, row), in float64: ρ ≤ r² with r² = min(9, 2 ln(255·o))
         # (beyond it α < 1/255), slightly widened; the exact per-pair test runs later.
@@ -132,6 +102,72 @@ def rasterize_sparse(
         "means2d": proj["means2d"],
         "radii": radii,
         "visible": visible,
+    }
+
+
+def prepare_surfels(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    colors: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    width: int,
+    height: int,
+    near: float,
+    far: float,
+    low_pass: float,
+) -> dict:
+    """Projection and culling shared by the CPU backends (differentiable where it matters).
+
+    Returns a dict: ``proj`` (:func:`project_surfels`'s dict); ``feats`` (C·N, 17 + D)
+    the packed per-(camera, surfel) features, row ``c·N + n``, columns
+    ``J (9), det, μx, μy, z, opacity, n_cam (3), colour (D)`` (differentiable);
+    ``visible`` (C, N) bool, ``radii`` (C, N) int32; ``vis_idx`` (S,) int64 the visible
+    rows of ``feats`` in (camera, centre depth) order, stable on ties; ``vbox`` (S, 4)
+    their integer pixel boxes ``(x0, y0, x1, y1)``, inclusive, clipped to the image.
+    """
+    C, N = viewmats.shape[0], means.shape[0]
+    D = colors.shape[-1]
+    proj = project_surfels(means, quats, scales, viewmats, Ks)
+    z = proj["depth"]
+    box, half = bounding_boxes(proj["M"], proj["means2d"].detach(), low_pass, width, height)
+    with torch.no_grad():
+        visible = (
+            (z >= near)
+            & (z <= far)
+            & (box[..., 0] <= box[..., 2])
+            & (box[..., 1] <= box[..., 3])
+            & (opacities[None, :] * 1.0 >= ALPHA_MIN)
+        )
+        radii = torch.where(visible, half.amax(-1).ceil(), 0).to(torch.int32)
+        # Every camera's surfels in order of depth, stable on ties; then the visible ones.
+        order = torch.argsort(z.detach(), dim=1, stable=True)
+        rows = order + N * torch.arange(C, device=z.device)[:, None]
+        vis_idx = rows.reshape(-1)[visible.gather(1, order).reshape(-1)]
+
+    feats = torch.cat(
+        [
+            proj["J"].reshape(C, N, 9),
+            proj["det"][..., None],
+            proj["means2d"],
+            z[..., None],
+            opacities[None, :, None].expand(C, N, 1),
+            proj["normals_camera"],
+            colors if colors.dim() == 3 else colors[None].expand(C, N, D),
+        ],
+        dim=-1,
+    ).reshape(C * N, 17 + D)
+
+    vbox = box.reshape(-1, 4)[vis_idx]
+    return {
+        "proj": proj,
+        "feats": feats,
+        "visible": visible,
+        "radii": radii,
+        "vis_idx": vis_idx,
+        "vbox": vbox,
     }
 
 
