@@ -45,14 +45,15 @@ def ssim_map(
     g = _gaussian_window(window, sigma, img1.dtype, img1.device)
     x = img1.permute(0, 3, 1, 2).reshape(C * D, 1, H, W)
     y = img2.permute(0, 3, 1, 2).reshape(C * D, 1, H, W)
-    kh = g.view(1, 1, window, 1)
-    kw = g.view(1, 1, 1, window)
     pad = window // 2
 
     def blur(t: torch.Tensor) -> torch.Tensor:
-        # Separable Gaussian; zero padding in both directions.
-        t = F.conv2d(F.pad(t, (0, 0, pad, pad)), kh)
-        return F.conv2d(F.pad(t, (pad, pad, 0, 0)), kw)
+        # Separable Gaussian, zero padding, as 2 × ``window`` shifted multiply-adds: on
+        # the CPU, F.conv2d with an 11×1 kernel and its backward were ~half of a fit
+        # step; the sums are ~10× cheaper and add in a fixed order.
+        t = F.pad(t, (pad, pad, pad, pad))
+        rows = sum(g[k] * t[:, :, k : k + H, :] for k in range(window))
+        return sum(g[k] * rows[:, :, :, k : k + W] for k in range(window))
 
     stacked = blur(torch.cat([x, y, x * x, y * y, x * y], dim=0))
     mu_x, mu_y, xx, yy, xy = stacked.split(C * D, dim=0)
