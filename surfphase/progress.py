@@ -1,6 +1,6 @@
 """Progress lines with elapsed time and an ETA, for the long stages' job logs.
 
-Each finished item prints one line ``<what> k/N <detail>, elapsed 1m05s, ETA 2m10s``. The
+Each finished item prints one line ``<what> k/N, <detail>, elapsed 1m05s, ETA 2m10s``. The
 ETA is the mean duration of the latest items (at most :data:`ETA_WINDOW`) times the
 items left: a fit's first frame (with densification) takes several times as long as
 the later ones, so the mean over every item would overestimate what is left.
@@ -32,6 +32,8 @@ class Progress:
         what: label printed before the count, e.g. ``"fit session01: frame"``.
         log: where lines go (``print`` by default, flushed); ``None`` keeps them quiet.
         clock: seconds, monotonic (a parameter so tests can drive it).
+        offset: items done before this run (a resumed fit): counted in the line, not in
+            the ETA.
     """
 
     def __init__(
@@ -40,8 +42,9 @@ class Progress:
         what: str,
         log: Callable[[str], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        offset: int = 0,
     ):
-        self.total, self.what, self.clock = int(total), what, clock
+        self.total, self.what, self.clock, self.offset = int(total), what, clock, int(offset)
         self.log = log if log is not None else (lambda line: print(line, flush=True))
         self.done = 0
         self.start = self.last = clock()
@@ -60,9 +63,9 @@ class Progress:
         self.recent = (self.recent + [(now - self.last) / max(n, 1)])[-ETA_WINDOW:]
         self.last = now
         eta = self.eta()
-        line = f"{self.what} {self.done}/{self.total}"
+        line = f"{self.what} {self.done + self.offset}/{self.total + self.offset}"
         if detail:
-            line += f" {detail}"
+            line += f", {detail}"
         line += f", elapsed {format_seconds(now - self.start)}"
         if self.done < self.total and eta is not None:
             line += f", ETA {format_seconds(eta)}"

@@ -249,7 +249,8 @@ def test_cli_writes_ply_per_frame_with_velocity(tmp_path, capsys):
     )
     assert rc == 0
     printed = capsys.readouterr().out
-    assert "mesh sphere: frames to do 1/2" in printed and "ETA" in printed  # progress
+    assert "mesh: frames to do 1/2, sphere: frame 3 meshed" in printed  # progress
+    assert "ETA" in printed
     summary = json.loads((out / "mesh.json").read_text())
     assert summary["session"] == "sphere"
     # Per-bubble size: the one bubble, its volume against the true sphere's.

@@ -203,6 +203,6 @@ def test_rerun_replaces_a_finished_output_whole(tmp_path):
     (out / "stale.txt").write_text("from an older run")
     run_mesh(fit, ingest, out, PARAMS, device="cpu")
     names = sorted(p.name for p in out.iterdir())
-    assert names == [f"{FIRST_FRAME:06d}.ply", "mesh.json", "sphere.pvd", "vtk"]
+    assert names == [f"{FIRST_FRAME:06d}.ply", "bubble_sizes.csv", "mesh.json", "sphere.pvd", "vtk"]
     assert [p.name for p in (out / "vtk").iterdir()] == [f"{FIRST_FRAME:06d}.vtp"]
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []

@@ -20,7 +20,7 @@ def test_eta_is_the_recent_mean_times_what_is_left():
         now[0] += 6.0
         p.step("x")
     assert p.eta() == 6.0 * 4
-    assert lines[-1] == "fit s1: frame 6/10 x, elapsed 1m30s, ETA 24s"
+    assert lines[-1] == "fit s1: frame 6/10, x, elapsed 1m30s, ETA 24s"
     now[0] += 24.0
     p.step(n=4)
     assert lines[-1] == "fit s1: frame 10/10, elapsed 1m54s"  # no ETA when done

@@ -938,7 +938,7 @@ def run_fit(
     next_id = int(state.get("next_id", model.n)) if state is not None else 0
     ids = record_ids(records[-1]) if records else np.zeros(0, dtype=np.int64)
     # One line per frame with elapsed time and ETA (a resumed run counts what is left).
-    progress = Progress(n_frames - start, f"session {data.session}: frame")
+    progress = Progress(n_frames - start, f"session {data.session}: frame", offset=start)
     for t in range(start, n_frames):
         t0 = time.perf_counter()
         labels = data.labels(t)
@@ -1067,7 +1067,7 @@ def run_fit(
             },
         )
         progress.step(
-            f"(frame {t + 1} of {n_frames}), {iters} steps, "
+            f"{iters} steps, "
             f"input-view PSNR {', '.join(f'{v:.1f}' for v in view_psnr)} dB, "
             f"{rec['seconds']:.1f} s"
         )

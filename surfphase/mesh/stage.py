@@ -290,7 +290,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
             flush=True,
         )
     todo = [t for t in positions if t not in records]
-    progress = Progress(len(todo), f"mesh {s.session}: frames to do")
+    progress = Progress(len(todo), "mesh: frames to do")
     for t in todo:
         t0 = time.perf_counter()
         a = surf["alive"][t]
@@ -327,7 +327,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
         with atomic_path(_frame_file(work, frame)) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, **rec)
         records[t] = rec
-        progress.step(f"(mesh {s.session}: frame {frame} meshed), {len(verts)} vertices")
+        progress.step(f"{s.session}: frame {frame} meshed, {len(verts)} vertices")
     return [records[t] for t in positions]
 
 

@@ -163,7 +163,7 @@ def refine_in_chunks(
     results = []
     for k, (a, b) in enumerate(windows):
         results.append(refine_chunk(video[a:b], k))
-        progress.step(f"(frames {a}-{b - 1})")
+        progress.step(f"frames {a}-{b - 1}")
     return merge_chunks(video.shape[0], windows, results)
 
 
