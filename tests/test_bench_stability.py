@@ -1,0 +1,35 @@
+"""`surfphase bench stability`'s measures against hand-made changes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from surfphase.bench.stability import add_noise, event_frames, track_changes
+
+
+def _table(dx: float = 0.0, dv: float = 0.0) -> pd.DataFrame:
+    rows = [{"frame": f, "bubble": b, "x": 1e-3 * b + dx, "y": 2e-3 + 1e-4 * f, "z": 0.0,
+             "vx": dv, "vy": 0.2, "vz": 0.0} for f in range(10) for b in (0, 1, 2)]  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def test_changes_are_the_applied_shift_outside_events(tmp_path):
+    (tmp_path / "events.csv").write_text(
+        "frame,camera,event,parents,children\n5,cam0,merge,1+2,3\n"
+    )
+    skip = event_frames(tmp_path / "events.csv", 1)
+    assert skip == {4, 5, 6}
+    out = track_changes(_table(), _table(dx=20e-6, dv=0.003), skip)
+    assert out["matched"] == 2 * 7 and out["unmatched_ref"] == 0  # ids ≥ 1, 7 frames
+    assert out["centroid_mean_um"] == pytest.approx(20.0)
+    assert out["velocity_worst_mps"] == pytest.approx(0.003)
+    assert out["velocity_worst_pct_of_speed"] == pytest.approx(100 * 0.003 / 0.2)
+
+
+def test_noise_has_the_asked_spread_and_stays_in_range():
+    frames = np.full((4, 64, 64), 0.5, np.float32)
+    noisy = add_noise(frames, 1e-4, seed=0)
+    assert noisy.dtype == np.float32 and np.std(noisy - frames) == pytest.approx(1e-4, rel=0.05)
+    assert add_noise(np.ones((1, 8, 8), np.float32), 1e-2, 0).max() <= 1.0
