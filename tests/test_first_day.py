@@ -37,7 +37,7 @@ def lab_folder(tmp_path_factory) -> tuple[Path, Path]:
     """(videos folder as a lab has it, the rig's board file)."""
     root = tmp_path_factory.mktemp("firstday")
     synth = root / "synth"
-    write_campaign(synth, preset="tiny", seed=5, sessions=1, frames=3, native=160)
+    write_campaign(synth, preset="tiny", seed=5, sessions=1, frames=2, native=160)
     videos = root / "recordings"
     (videos / "calib").mkdir(parents=True)
     for cam, label in (("cam0", "left"), ("cam1", "right")):

@@ -73,7 +73,11 @@ def run_twice(work: Path, settings: dict, log=print) -> dict:
             campaign, preset="tiny", seed=int(settings["seed"]), overwrite=True, sessions=1,
             frames=int(settings["frames"]), native=int(settings["native"]),
         )  # fmt: skip
-    target = "results/session01/evaluate/metrics.json"
+    target = {
+        "evaluate": "results/session01/evaluate/metrics.json",
+        "mesh": "results/session01/mesh",
+        "fit": "results/session01/fit/surfels.npz",
+    }[settings.get("target", "evaluate")]
     runs = {}
     for name in ("idle", "loaded"):
         wd = work / name
@@ -130,7 +134,7 @@ def report(summary: dict) -> str:
 def main(args) -> int:
     settings = {k: getattr(args, k) for k in (
         "frames", "native", "scale", "n_init", "hull_grid", "iters_first", "iters_next", "voxels",
-        "n_orbit", "threads", "seed", "load_processes", "stage2")}  # fmt: skip
+        "n_orbit", "threads", "seed", "load_processes", "stage2", "target")}  # fmt: skip
     summary = run_twice(Path(args.work), settings)
     print(report(summary))
     if args.json:

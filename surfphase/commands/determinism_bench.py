@@ -30,6 +30,12 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--seed", type=int, default=0, help="synthetic campaign seed")
     p.add_argument("--load-processes", type=int, default=1, help="CPU-bound processes")
     p.add_argument("--stage2", action="store_true", help="also prior, refinement, stage 2")
+    p.add_argument(
+        "--target",
+        choices=["evaluate", "mesh", "fit"],
+        default="evaluate",
+        help="the last stage run (evaluate: fit, mesh and evaluation)",
+    )
     p.add_argument("--json", help="also write the summary to this JSON file")
 
     def run(args) -> int:
