@@ -2,11 +2,12 @@
 get a tiny amount of noise.
 
 A campaign working folder where the workflow already ran (e.g. ``bench accuracy``'s
-``WORK/run``) is the reference. For each session, its ingested frame stacks (float32 in
-[0, 1]) are copied with Gaussian noise of standard deviation ``noise`` (1e-4 of the
-range: ~6 grey levels of 16 bits) added, and the mask stage and the stage-1 fit rerun
-on them in a working folder of their own, with the same config. The noisy
-``bubbles.csv`` is matched to the reference one frame by frame (Hungarian on the
+``WORK/run``) gives the inputs: its config, calibration and ingested frame stacks
+(float32 in [0, 1]). For each session the mask stage and the stage-1 fit run twice, in
+working folders of their own, with this code and that config: on the frames as they are
+(the reference) and with Gaussian noise of standard deviation ``noise`` (1e-4 of the
+range: ~6 grey levels of 16 bits) added. The noisy ``bubbles.csv`` is matched to the
+reference one frame by frame (Hungarian on the
 centroids, gate 0.5 mm) and the changes of centroid and velocity are reported, mean and
 worst, leaving out the frames within ``event_margin`` frames of a merge or a split (the
 reference's ``masks/events.csv``), where a last-bit change may legitimately move the
@@ -84,8 +85,9 @@ def perturbed_run(ref_dir: Path, work: Path, session: str, noise: float, seed: i
     shutil.copytree(ing_ref, ing)
     cams = sorted(p for p in ing_ref.glob("*.npy"))
     for k, p in enumerate(cams):
-        stack = np.load(p, mmap_mode="r")
-        np.save(ing / p.name, add_noise(stack, noise, seed * 1000 + k))
+        if noise > 0:
+            stack = np.load(p, mmap_mode="r")
+            np.save(ing / p.name, add_noise(stack, noise, seed * 1000 + k))
     target = f"results/{session}/fit/bubbles.csv"
     cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work),
            "--cores", str(cores), target]  # fmt: skip
@@ -102,15 +104,15 @@ def run_stability(ref_dir: Path, work: Path, sessions: list[str] | None, noise: 
                   seed: int, margin: int, cores: int, log=print) -> list[dict]:  # fmt: skip
     """Every session of the reference folder (or ``sessions``) → one row each."""
     ref_dir, work = Path(ref_dir).resolve(), Path(work).resolve()
-    found = sorted(p.parent.parent.name for p in (ref_dir / "results").glob("*/fit/bubbles.csv"))
+    found = sorted(p.parent.name for p in (ref_dir / "results").glob("*/ingest"))
     names = sessions or found
     rows = []
     for s in names:
-        ref_csv = ref_dir / "results" / s / "fit" / "bubbles.csv"
-        if not ref_csv.is_file():
-            raise FileNotFoundError(f"session {s}: no reference fit {ref_csv}")
-        noisy = perturbed_run(ref_dir, work / s, s, noise, seed, cores)
-        skip = event_frames(ref_dir / "results" / s / "masks" / "events.csv", margin)
+        if not (ref_dir / "results" / s / "ingest").is_dir():
+            raise FileNotFoundError(f"session {s}: no ingest in {ref_dir / 'results' / s}")
+        ref_csv = perturbed_run(ref_dir, work / s / "clean", s, 0.0, seed, cores)
+        noisy = perturbed_run(ref_dir, work / s / "noisy", s, noise, seed, cores)
+        skip = event_frames(work / s / "clean" / "results" / s / "masks" / "events.csv", margin)
         row = {"session": s, **track_changes(pd.read_csv(ref_csv), pd.read_csv(noisy), skip)}
         rows.append(row)
         log(f"{s}: worst velocity change {row['velocity_worst_mps']:.4f} m/s = "

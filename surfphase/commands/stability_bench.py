@@ -12,8 +12,9 @@ def register_bench(bench_subparsers) -> None:
         "stability",
         help="how far bubble tracks move when the input frames get 1e-4 noise",
         description="For each session of a campaign folder where the workflow ran (e.g. "
-        "bench accuracy's WORK/run), add Gaussian noise to the ingested frames, rerun "
-        "masks and the stage-1 fit, and report the changes of centroid and velocity.",
+        "bench accuracy's WORK/run), rerun masks and the stage-1 fit on its ingested "
+        "frames as they are and with Gaussian noise added, and report the changes of "
+        "centroid and velocity.",
     )
     p.add_argument("--run", required=True, help="reference campaign working folder")
     p.add_argument("--work", required=True, help="scratch folder for the noisy reruns")
