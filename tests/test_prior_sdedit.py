@@ -140,14 +140,6 @@ def test_embedded_refine_deterministic_per_seed():
     assert a.min() >= 0.0 and a.max() <= 1.0
 
 
-def test_view_strengths_follow_the_design():
-    got = [sdedit.view_strength(v) for v in range(1, 12)]
-    assert got == [0.2] * 3 + [0.35] * 5 + [0.2] * 3
-    assert sdedit.view_strength(2, near=0.1, far=0.5, far_views=(2,)) == 0.5
-    with pytest.raises(ValueError):
-        sdedit.view_strength(0)
-
-
 class _LinearField(torch.nn.Module):
     """v(x, t) = x: dx/dt = x has the closed-form flow x(0) = x(s)·e^{−s}."""
 

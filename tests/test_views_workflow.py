@@ -13,8 +13,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 SETTINGS = {
     "prior": {"backend": "embedded", "clips": "clips", "embedded": {"steps": 5}},
-    "refine": {"enabled": False, "strength_near": 0.2, "strength_far": 0.35,
-               "far_views": [4, 5, 6, 7, 8], "seed": 0},
+    # Not the defaults (0.2, 0.35, 4-8, 0): a workflow that ignored them would fail.
+    "refine": {"enabled": False, "strength_near": 0.15, "strength_far": 0.45,
+               "far_views": [3, 4, 5, 9], "seed": 7},
 }  # fmt: skip
 
 
@@ -42,7 +43,7 @@ def test_dry_run_has_one_refine_job_per_session_and_view(tmp_path):
     assert counts["refine"] == 22 and counts["render_views"] == 2 and counts["train_prior"] == 1
     # strengths from the config by view number: far views 4–8, near the others
     for k in range(1, 12):
-        s = "0.35" if 4 <= k <= 8 else "0.2"
-        assert re.search(rf"--view orbit{k:02d} --strength {s} --seed 0", out), k
+        s = "0.45" if k in (3, 4, 5, 9) else "0.15"
+        assert re.search(rf"--view orbit{k:02d} --strength {s} --seed 7", out), k
     assert "render-views --fit results/session01/fit/surfels.npz" in out
     assert re.search(r"train-prior --clips clips --out results/prior --backend embedded", out)

@@ -111,7 +111,7 @@ class Densify2DGS:
         grow_scale: float = 0.01,
         prune_opacity: float = 0.05,
         prune_scale: float = 0.1,
-        max_surfels: int = 6000,
+        max_surfels: int = 3000,
     ):
         self.refine_start = refine_start
         self.refine_stop = refine_stop

@@ -209,27 +209,6 @@ class Tracks:
         return self.n - 1
 
 
-def _shifted_overlap(
-    prev: np.ndarray,
-    prev_ids: Sequence[int],
-    shifts: Sequence[np.ndarray],
-    cur: np.ndarray,
-    n_cur: int,
-) -> np.ndarray:
-    """(P, n_cur) pixel counts of previous masks, shifted, falling on current instances."""
-    h, w = cur.shape
-    out = np.zeros((len(prev_ids), n_cur), np.int64)
-    for r, (i, d) in enumerate(zip(prev_ids, shifts, strict=True)):
-        ys, xs = np.nonzero(prev == i)
-        ys = np.round(ys + d[1]).astype(int)
-        xs = np.round(xs + d[0]).astype(int)
-        ok = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)
-        hit = cur[ys[ok], xs[ok]]
-        hit = hit[hit >= 0]
-        out[r] = np.bincount(hit, minlength=n_cur)[:n_cur]
-    return out
-
-
 def track_view(
     labels: np.ndarray, inst: pd.DataFrame, attached: set[tuple[int, int]], params: Mapping
 ) -> Tracks:

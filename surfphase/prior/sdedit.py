@@ -165,16 +165,3 @@ def refine_in_chunks(
         results.append(refine_chunk(video[a:b], k))
         progress.step(f"frames {a}-{b - 1}")
     return merge_chunks(video.shape[0], windows, results)
-
-
-def view_strength(
-    view: int, near: float = 0.2, far: float = 0.35, far_views: tuple[int, ...] = (4, 5, 6, 7, 8)
-) -> float:
-    """SDEdit strength of orbit view ``view`` (1 … 11, 30° steps from camera 1).
-
-    Views far from both inputs (4–8 by default) get ``far``, the others ``near``
-    (the config's ``prior.strength_near`` / ``strength_far`` / ``far_views``).
-    """
-    if view < 1:
-        raise ValueError(f"orbit views are numbered from 1, got {view}")
-    return check_strength(far if view in far_views else near)
