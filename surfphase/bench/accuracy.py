@@ -566,14 +566,15 @@ def bench_config(set_values: Sequence[str] = ()) -> dict:
     return cfg
 
 
-def write_run_campaign(synth_dir: Path, run_dir: Path, config: dict, sessions: Sequence[str]):
+def write_run_campaign(synth_dir: Path, run_dir: Path, config: dict) -> pd.DataFrame:
     """A campaign folder ``run_dir/config/`` (config, sheets, board) whose sheets point
-    at the synthetic campaign's videos, calibration images and truth (absolute paths)."""
+    at the synthetic campaign's videos, calibration images and truth (absolute paths).
+    Every session of the synthetic campaign is in the sheet (a run of some sessions, or
+    a scoring with ``--skip-run``, leaves the others' results valid); returns the sheet."""
     synth_dir, run_dir = Path(synth_dir).resolve(), Path(run_dir).resolve()
     cdir = run_dir / "config"
     cdir.mkdir(parents=True, exist_ok=True)
     sheet = pd.read_csv(synth_dir / "sessions.tsv", sep="\t", dtype=str, keep_default_na=False)
-    sheet = sheet[sheet["session"].isin(sessions)].copy()
     for col in ("cam0", "cam1", "gt"):
         sheet[col] = [str(synth_dir / p) for p in sheet[col]]
     rigs = pd.read_csv(synth_dir / "rigs.tsv", sep="\t", dtype=str, keep_default_na=False)
@@ -656,7 +657,7 @@ def run_accuracy_bench(
     names = list(all_sessions[: sessions or len(all_sessions)])
     cfg = bench_config(set_values)
     run_dir = work / "run"
-    sheet = write_run_campaign(campaign, run_dir, cfg, names).set_index("session")
+    sheet = write_run_campaign(campaign, run_dir, cfg).set_index("session")
     t1 = time.perf_counter()
     if not skip_run:
         # One session at a time, so that a run stopped early leaves whole sessions.
