@@ -332,6 +332,56 @@ def smoothed_table(base: pd.DataFrame, fps: float, window_s: float, order: int) 
     return out
 
 
+def method_track_table(fit_dir: Path, window_s: float, order: int) -> pd.DataFrame:
+    """The method's ``bubbles.csv`` as ``fit: track_window_s = window_s`` (and
+    ``track_order``) writes it, computed from the same fit's ``surfels.npz``
+    (:func:`surfphase.fit.outputs.bubble_table`: the table is a function of the surfels)."""
+    from surfphase.fit.outputs import bubble_table, load_surfels
+
+    arrays = load_surfels(fit_dir / "surfels.npz")
+    return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order)
+
+
+def track_consistency(pred: pd.DataFrame) -> float:
+    """Mean |d/dt centroid − velocity| (m/s) over bubble-frames (ids ≥ 1) inside a run of
+    the same id: the centroid track's own central difference against the reported
+    velocity (0 when a user who differentiates the trajectory gets the same velocity)."""
+    errs = []
+    for _, g in pred[pred["bubble"] >= 1].sort_values("frame").groupby("bubble"):
+        f = g["frame"].to_numpy()
+        t = g["time_s"].to_numpy()
+        x = g[XYZ].to_numpy(np.float64)
+        v = g[VEL].to_numpy(np.float64)
+        for i in range(1, len(g) - 1):
+            if f[i - 1] == f[i] - 1 and f[i + 1] == f[i] + 1:
+                d = (x[i + 1] - x[i - 1]) / (t[i + 1] - t[i - 1])
+                if np.isfinite(v[i]).all():
+                    errs.append(float(np.linalg.norm(d - v[i])))
+    return float(np.mean(errs)) if errs else math.nan
+
+
+def choose_method_smoothing(
+    fits: dict[str, Path], truth: dict[str, pd.DataFrame]
+) -> tuple[tuple[float, int], pd.DataFrame]:
+    """As :func:`choose_smoothing`, for the method's own tracks (``fit: track_window_s``)."""
+    grid = []
+    for w in SMOOTH_WINDOWS_S:
+        for o in SMOOTH_ORDERS:
+            errs = [velocity_scores(method_track_table(d, w, o), truth[s])["relative_error"]
+                    for s, d in fits.items()]  # fmt: skip
+            errs = [e for e in errs if np.isfinite(e)]
+            grid.append((w, o, float(np.mean(errs)) if errs else math.nan,
+                         max(errs, default=math.nan)))  # fmt: skip
+    df = pd.DataFrame(
+        grid, columns=["window_s", "order", "mean_relative_error", "worst_relative_error"]
+    )
+    fin = df[np.isfinite(df["mean_relative_error"])]
+    if fin.empty:
+        return (SMOOTH_WINDOWS_S[0], SMOOTH_ORDERS[0]), df
+    best = fin.loc[fin["mean_relative_error"].idxmin()]
+    return (float(best["window_s"]), int(best["order"])), df
+
+
 # --- one session ----------------------------------------------------------------------
 
 
@@ -420,6 +470,9 @@ COLUMNS = [
     ("v rel: method", ("method", "relative_error"), "low", "{:.3f}"),
     ("v rel: baseline raw", ("baseline_raw", "relative_error"), "low", "{:.3f}"),
     ("v rel: baseline smoothed", ("baseline_smoothed", "relative_error"), "low", "{:.3f}"),
+    ("v rel: method track-smoothed", ("method_smoothed", "relative_error"), "low", "{:.3f}"),
+    ("d/dt track − v m/s: method", ("consistency", "method"), "low", "{:.4f}"),
+    ("d/dt track − v: smoothed", ("consistency", "method_smoothed"), "low", "{:.4f}"),
     ("abs err vx/vy/vz m/s: method", ("method", "abs_v"), "low", None),
     ("abs err vx/vy/vz: raw", ("baseline_raw", "abs_v"), "low", None),
     ("abs err vx/vy/vz: smoothed", ("baseline_smoothed", "abs_v"), "low", None),
@@ -686,6 +739,8 @@ def run_accuracy_bench(
             log(f"session {s}: native baseline failed: {e}")
     timings["baseline_s"] = round(time.perf_counter() - t2, 1)
     (window, order), grid = choose_smoothing(raw, truths)
+    fits = {s: res / s / "fit" for s in names if (res / s / "fit" / "surfels.npz").is_file()}
+    (m_window, m_order), m_grid = choose_method_smoothing(fits, truths)
     t3 = time.perf_counter()
     rows = []
     for s in names:
@@ -703,6 +758,13 @@ def run_accuracy_bench(
             r["baseline_smoothed"] = velocity_scores(
                 smoothed_table(tab, fps, window, order), truths[s]
             )
+        if s in fits:
+            smooth = method_track_table(fits[s], m_window, m_order)
+            r["method_smoothed"] = velocity_scores(smooth, truths[s])
+            r["consistency"] = {
+                "method": track_consistency(pd.read_csv(fits[s] / "bubbles.csv")),
+                "method_smoothed": track_consistency(smooth),
+            }
         rows.append(r)
     timings["metrics_s"] = round(time.perf_counter() - t3, 1)
     timings["total_s"] = round(time.perf_counter() - t0, 1)
@@ -711,7 +773,9 @@ def run_accuracy_bench(
         f"Gate: reported and true bubbles match when their centroids are within "
         f"{GATE_R_EQ:g} r_eq of the true bubble (Hungarian per frame). Baseline smoothed: "
         f"Savitzky–Golay (deriv=1) over {window * 1e3:g} ms, order {order} (best of the "
-        f"grid below on these sessions). Config: `surfphase new-campaign` defaults + "
+        f"grid below on these sessions). Method track-smoothed: `fit: track_window_s: "
+        f"{m_window:g}`, `track_order: {m_order}` (best of the same grid for the method), "
+        "computed from the same fits' surfels. Config: `surfphase new-campaign` defaults + "
         f"{json.dumps(BENCH_CONFIG)}"
         + (f" + --set {' '.join(set_values)}" if set_values else "")
         + f"; {cores} cores."
@@ -721,12 +785,18 @@ def run_accuracy_bench(
         "table": table,
         "notes": notes,
         "smoothing": {"window_s": window, "order": order, "grid": grid.to_dict("records")},
+        "method_smoothing": {
+            "window_s": m_window,
+            "order": m_order,
+            "grid": m_grid.to_dict("records"),
+        },
         "config": cfg,
         "campaign": str(campaign),
         "timings": timings,
     }
     (work / "accuracy.json").write_text(json.dumps(_finite(result), indent=1))
-    md = [table, "", notes, "", grid_table(grid)]
+    md = [table, "", notes, "", "Baseline:", "", grid_table(grid), "", "Method:", "",
+          grid_table(m_grid)]  # fmt: skip
     (work / "accuracy.md").write_text("\n".join(md) + "\n")
     return result
 
