@@ -18,8 +18,9 @@ def register_bench(bench_subparsers) -> None:
         help="the default workflow on the varied synthetic preset vs the classical baseline",
         description=(
             "Generate `surfphase synth --preset bench` (or use --campaign), run the workflow "
-            "with the config `surfphase new-campaign` writes (refinement off, ingest scale "
-            "0.5) through evaluate, compute the two-view centroid baseline from masks at the "
+            "with the project's config plus ingest scale 0.5 and refinement off (the "
+            "config `surfphase new-campaign` writes for clip-less campaigns, at a fixed "
+            "scale) through evaluate, compute the two-view centroid baseline from masks at the "
             "native resolution (raw and track-smoothed, window and order chosen on a grid), "
             "and print one table: per session, mean and worst."
         ),
