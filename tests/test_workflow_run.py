@@ -92,10 +92,17 @@ def edit_sheet(path: Path, session: str, column: str, value: str) -> None:
     path.write_text("\n".join(out) + "\n")
 
 
-def test_full_run_produces_every_stage(tiny: Path, tmp_path: Path):
-    work = make_workdir(tmp_path, tiny)
+@pytest.fixture(scope="module")
+def full_run(tiny: Path, tmp_path_factory) -> Path:
+    """The whole workflow on the tiny campaign (run once; tests copy it to change it)."""
+    work = make_workdir(tmp_path_factory.mktemp("full"), tiny)
     r = snakemake(work)
     assert r.returncode == 0, r.stdout + r.stderr
+    return work
+
+
+def test_full_run_produces_every_stage(full_run: Path):
+    work = full_run
     cams = json.loads((work / "results/calib/rig01/cameras.json").read_text())["cameras"]
     assert set(cams) >= {"cam0", "cam1"}
     for s in SESSIONS:
@@ -200,13 +207,17 @@ def test_killed_run_resumes_with_rerun_incomplete(tiny: Path, tmp_path: Path):
         np.testing.assert_array_equal(a, b)
 
 
-def test_full_run_with_refinement(tiny: Path, tmp_path: Path):
+def test_full_run_with_refinement(full_run: Path, tmp_path: Path):
     """Refinement on: novel views → prior → per-view SDEdit → stage-2 fit → evaluation.
 
     A small version of the demo's DAG (2 orbit views, a prior trained for 2 steps); the
-    method's figures come from ``make demo`` and the benchmarks, not from this test.
+    method's figures come from ``make demo`` and the benchmarks, not from this test. It
+    goes on from the full run's stage 1 (copied with its Snakemake records: the stage-1
+    settings are the same, so calibration, ingest, masks and stage 1 are not redone).
     """
-    work = make_workdir(tmp_path, tiny)
+    work = tmp_path / "work"
+    shutil.copytree(full_run, work, symlinks=True)
+    tiny = Path(sheet_value(work / "config" / "sessions.tsv", "session01", "cam0")).parents[1]
     cfg = work / "config" / "config.yaml"
     cfg.write_text(
         cfg.read_text()
@@ -237,20 +248,24 @@ def test_full_run_with_refinement(tiny: Path, tmp_path: Path):
     assert metrics["stage1"]["velocity"]["matched"] > 0
     assert (work / "results/prior/prior.json").exists()
     assert (work / f"logs/fit_stage2/{s}.log").exists()
+    assert "rule fit:" not in r.stdout + r.stderr  # stage 1 was not redone
 
 
 def test_failed_session_leaves_a_campaign_table_and_page_of_the_others(
-    tiny: Path, tmp_path: Path, capsys
+    full_run: Path, tmp_path: Path, capsys
 ):
-    """session02's fps is bad: session01 runs to its report; `surfphase run` then writes
-    the campaign table and page of session01, listing session02 with its error, and
-    Snakemake still plans both outputs for the next run."""
+    """session02's fps is bad: session01 is finished (the full run's results, copied with
+    their Snakemake records); `surfphase run` then writes the campaign table and page of
+    session01, listing session02 with its error, and Snakemake still plans both outputs
+    for the next run."""
     from surfphase.cli import main
 
-    work = make_workdir(tmp_path, tiny)
-    (work / "config" / "config.yaml").write_text(
-        (work / "config" / "config.yaml").read_text() + "report:\n  mesh_frames: 1\n"
-    )
+    work = tmp_path / "work"
+    shutil.copytree(full_run, work, symlinks=True)  # copy2: modification times kept
+    shutil.rmtree(work / "results" / "session02")
+    shutil.rmtree(work / "results" / "campaign")
+    for log in work.glob("logs/*/session02.log"):
+        log.unlink()
     edit_sheet(work / "config" / "sessions.tsv", "session02", "fps", "fast")
     assert main(["run", "--campaign", str(work), "--cores", "2"]) == 1
     out = capsys.readouterr().out
