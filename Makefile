@@ -23,7 +23,7 @@ lint: $(STAMP)
 	$(BIN)/snakemake --lint --cores 1
 
 test: $(STAMP) lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 # The demo campaign is generated once (written whole; demo/synth.json is its last file):
 # a second `make demo` reuses it and Snakemake reruns only what is out of date.
