@@ -364,22 +364,14 @@ def choose_method_smoothing(
     fits: dict[str, Path], truth: dict[str, pd.DataFrame]
 ) -> tuple[tuple[float, int], pd.DataFrame]:
     """As :func:`choose_smoothing`, for the method's own tracks (``fit: track_window_s``)."""
-    grid = []
-    for w in SMOOTH_WINDOWS_S:
-        for o in SMOOTH_ORDERS:
-            errs = [velocity_scores(method_track_table(d, w, o), truth[s])["relative_error"]
-                    for s, d in fits.items()]  # fmt: skip
-            errs = [e for e in errs if np.isfinite(e)]
-            grid.append((w, o, float(np.mean(errs)) if errs else math.nan,
-                         max(errs, default=math.nan)))  # fmt: skip
-    df = pd.DataFrame(
-        grid, columns=["window_s", "order", "mean_relative_error", "worst_relative_error"]
+    return _best_on_grid(
+        lambda w, o: [
+            velocity_scores(method_track_table(d, w, o), truth[s])["relative_error"]
+            for s, d in fits.items()
+        ],
+        SMOOTH_WINDOWS_S,
+        SMOOTH_ORDERS,
     )
-    fin = df[np.isfinite(df["mean_relative_error"])]
-    if fin.empty:
-        return (SMOOTH_WINDOWS_S[0], SMOOTH_ORDERS[0]), df
-    best = fin.loc[fin["mean_relative_error"].idxmin()]
-    return (float(best["window_s"]), int(best["order"])), df
 
 
 # --- one session ----------------------------------------------------------------------
@@ -558,14 +550,23 @@ def choose_smoothing(
 
     ``raw``: ``{session: (baseline table, fps)}``; ``truth``: ``{session: bubbles.csv}``.
     """
+    return _best_on_grid(
+        lambda w, o: [
+            velocity_scores(smoothed_table(tab, fps, w, o), truth[s])["relative_error"]
+            for s, (tab, fps) in raw.items()
+        ],
+        windows_s,
+        orders,
+    )
+
+
+def _best_on_grid(errors, windows_s: Sequence[float], orders: Sequence[int]):
+    """Evaluate ``errors(window_s, order)`` (per-session relative errors) on the grid;
+    → ((best window, best order) by the mean, the grid as a DataFrame)."""
     grid = []
     for w in windows_s:
         for o in orders:
-            errs = [
-                velocity_scores(smoothed_table(tab, fps, w, o), truth[s])["relative_error"]
-                for s, (tab, fps) in raw.items()
-            ]
-            errs = [e for e in errs if np.isfinite(e)]
+            errs = [e for e in errors(w, o) if np.isfinite(e)]
             grid.append(
                 (w, o, float(np.mean(errs)) if errs else math.nan, max(errs, default=math.nan))
             )
