@@ -46,13 +46,12 @@ import numpy as np
 import pandas as pd
 import yaml
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from surfphase.eval import baseline as bl
 from surfphase.eval import velocity
 from surfphase.eval.geometry import chamfer, read_ply, sample_surface
+from surfphase.mesh.measure import signed_volume, vertex_components
 
 #: Matching gate between reported and true centroids, in r_eq of the true bubble.
 GATE_R_EQ = 0.5
@@ -169,20 +168,8 @@ def horizontal_bisector(view_dirs: Sequence[np.ndarray]) -> np.ndarray:
 
 def mesh_components(verts: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(F,) connected-component id of each triangle (triangles sharing a vertex)."""
-    faces = np.asarray(faces, dtype=np.int64)
-    nv, nf = len(verts), len(faces)
-    if nf == 0:
-        return np.zeros(0, dtype=np.int64)
-    rows = np.repeat(np.arange(nf), 3)
-    graph = coo_matrix((np.ones(3 * nf), (rows, faces.ravel() + nf)), shape=(nf + nv, nf + nv))
-    _, lab = connected_components(graph, directed=False)
-    return lab[:nf]
-
-
-def signed_volume(verts: np.ndarray, faces: np.ndarray) -> float:
-    """Enclosed volume (units³) of a closed, outward triangle mesh (divergence theorem)."""
-    a, b, c = (np.asarray(verts, dtype=np.float64)[np.asarray(faces)[:, k]] for k in range(3))
-    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    return vertex_components(faces, len(verts))[faces[:, 0]]
 
 
 @dataclass

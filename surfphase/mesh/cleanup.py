@@ -56,16 +56,10 @@ def clean_mesh(
 def mesh_stats(faces: np.ndarray, n_verts: int) -> dict:
     """``components`` (connected by shared vertices) and ``watertight`` (every edge
     shared by exactly two faces) of a triangle mesh."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    from surfphase.mesh.measure import is_closed, vertex_components
 
     if len(faces) == 0:
         return {"components": 0, "watertight": False}
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    g = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_verts, n_verts))
-    used = np.unique(faces)
-    n_comp, labels = connected_components(g, directed=False)
-    components = len(np.unique(labels[used]))
-    es = np.sort(e, axis=1)
-    _, counts = np.unique(es, axis=0, return_counts=True)
-    return {"components": int(components), "watertight": bool(np.all(counts == 2))}
+    labels = vertex_components(faces, n_verts)
+    components = len(np.unique(labels[np.unique(faces)]))
+    return {"components": int(components), "watertight": is_closed(faces)}
