@@ -9,6 +9,11 @@ downscale with ``cv2.INTER_AREA``. Outputs in ``out``:
   its full scale, 255 or 65535), readable memory-mapped with :func:`load_frames`;
 * ``cameras.json``: the cameras the stacks are seen by (no distortion, cropped and
   scaled intrinsics, same extrinsics);
+* ``native/``, only when the frames are downscaled and ``native`` is on: the same
+  frames undistorted and cropped but not downscaled (``<cam>.npy`` uint16, grey level ×
+  65535), their ``cameras.json`` and a ``meta.json``. The mask stage segments these, so
+  bubble outlines and centroids keep the recording's resolution
+  ([docs/method.md §4](../docs/method.md#4-masks));
 * ``meta.json``: session, fps, frame indices in the source, crop/scale, and per camera
   the source path, kind, bit depth, size and count (written last).
 
@@ -17,6 +22,8 @@ Frames are processed one at a time, so a long recording never sits in memory.
 
 from __future__ import annotations
 
+import shutil
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -105,6 +112,7 @@ def ingest_session(
     crop: tuple[int, int, int, int] | None = None,
     out: Path = Path("."),
     fit_size: int | None = None,
+    native: bool = False,
 ) -> dict:
     """Undistort, crop and downscale a session's recordings into frame stacks in ``out``.
 
@@ -119,6 +127,8 @@ def ingest_session(
         crop: ``(x0, y0, w, h)`` pixels of the undistorted full-size image, or None.
         out: output folder.
         fit_size: with ``scale="auto"``, the fitted frame's longer side, pixels.
+        native: also write ``out/native/`` (the frames before downscaling) when they
+            are downscaled (config ``ingest: native_masks``).
 
     Returns:
         The metadata written to ``out/meta.json``.
@@ -177,6 +187,7 @@ def ingest_session(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     out_cams: dict[str, Camera] = {}
+    native_cams: dict[str, Camera] = {}
     per_cam = {}
     for name in names:
         src, cam = sources[name], cameras[name]
@@ -187,10 +198,17 @@ def ingest_session(
             cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1
         )
         full_scale = float(2**src.bit_depth - 1)
-        with atomic_path(out / f"{name}.npy") as tmp:
+        keep_native = native and size != (cw, ch)
+        native_path = atomic_path(out / "native" / f"{name}.npy") if keep_native else None
+        with atomic_path(out / f"{name}.npy") as tmp, native_path or nullcontext() as tmp_native:
             stack = np.lib.format.open_memmap(
                 tmp, mode="w+", dtype=np.float32, shape=(len(indices), size[1], size[0])
             )
+            full = None
+            if keep_native:
+                full = np.lib.format.open_memmap(
+                    tmp_native, mode="w+", dtype=np.uint16, shape=(len(indices), ch, cw)
+                )
             for k, frame in enumerate(src.read(indices)):
                 img = frame.astype(np.float32) / np.float32(full_scale)
                 img = cv2.remap(
@@ -198,11 +216,17 @@ def ingest_session(
                 )
                 if c:
                     img = img[c[1] : c[1] + c[3], c[0] : c[0] + c[2]]
+                if full is not None:
+                    full[k] = np.round(np.clip(img, 0.0, 1.0) * 65535.0).astype(np.uint16)
                 if size != (img.shape[1], img.shape[0]):
                     img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
                 stack[k] = img
             stack.flush()
             del stack
+            if full is not None:
+                full.flush()
+                del full
+                native_cams[name] = output_camera(cam, c, (cw, ch))
         out_cams[name] = output_camera(cam, c, size)
         per_cam[name] = {
             "source": str(src.path),
@@ -216,6 +240,13 @@ def ingest_session(
             "stack": f"{name}.npy",
         }
     save_cameras(out / "cameras.json", out_cams, session=session)
+    if native_cams:
+        save_cameras(out / "native" / "cameras.json", native_cams, session=session)
+        native_meta = {"session": session, "fps": float(fps), "cameras": list(native_cams)}
+        native_meta["frame_indices"] = indices.tolist()
+        atomic_write_json(out / "native" / "meta.json", native_meta)
+    elif (out / "native").exists():
+        shutil.rmtree(out / "native")
     meta = {
         "session": session,
         "fps": float(fps),
@@ -226,6 +257,7 @@ def ingest_session(
         "dtype": "float32",
         "value_range": [0.0, 1.0],
         "cameras": per_cam,
+        "native": "native" if native_cams else None,
     }
     atomic_write_json(out / "meta.json", meta)
     return meta

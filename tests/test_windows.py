@@ -10,6 +10,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from test_mesh_resume import FIRST_FRAME, PARAMS, assert_same_meshes, write_fit
@@ -163,6 +164,16 @@ def test_workflow_windows_equal_a_single_job(tmp_path):
     settings = "".join(f"  {k}: {v}\n" for k, v in PARAMS.items())
     write_campaign_sheets(work, [("s1", "")], f"mesh:\n{settings}  window: 3\n")
     fit, ingest = write_fit(work / "results" / "s1", frames=4, session="s1")
+    # The mesh rules carve by the session's masks: here every pixel is foreground, so
+    # the carve leaves the fused volume as the single job without masks makes it.
+    from surfphase.cameras import load_cameras
+
+    (work / "results/s1/masks").mkdir()
+    for name, cam in load_cameras(Path(ingest) / "cameras.json").items():
+        np.save(
+            work / f"results/s1/masks/{name}_labels.npy",
+            np.zeros((4, cam.height, cam.width), np.int32),
+        )
     rules = ["--allowed-rules", "mesh", "mesh_window", "mesh_frame_count"]
     r = snakemake(work, "results/s1/mesh", *rules)
     assert r.returncode == 0, r.stdout + r.stderr

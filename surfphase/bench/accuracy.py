@@ -321,12 +321,22 @@ def smoothed_table(base: pd.DataFrame, fps: float, window_s: float, order: int) 
 
 def method_track_table(fit_dir: Path, window_s: float, order: int) -> pd.DataFrame:
     """The method's ``bubbles.csv`` as ``fit: track_window_s = window_s`` (and
-    ``track_order``) writes it, computed from the same fit's ``surfels.npz``
-    (:func:`surfphase.fit.outputs.bubble_table`: the table is a function of the surfels)."""
-    from surfphase.fit.outputs import bubble_table, load_surfels
+    ``track_order``) writes it, computed from the same fit's ``surfels.npz`` and, when
+    the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
+    (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
+    the table is a function of these)."""
+    from surfphase.fit.outputs import anchored_table, bubble_table, load_surfels, read_anchors
 
     arrays = load_surfels(fit_dir / "surfels.npz")
-    return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order)
+    masks = Path(fit_dir).parent / "masks"
+    anchors = read_anchors(masks / "anchors.csv", Path(fit_dir).parent.name)
+    if anchors is None:
+        return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order)
+    labels = [np.load(p, mmap_mode="r") for p in sorted(masks.glob("*_labels.npy"))]
+    frames = np.asarray(arrays["frame"], dtype=np.int64)
+    nuc = {int(f) for t, f in enumerate(frames) if any((lab[t] == 0).any() for lab in labels)}
+    table = bubble_table(arrays, arrays["time_s"], frames)
+    return anchored_table(table, anchors, nuc, window_s, order)
 
 
 def track_consistency(pred: pd.DataFrame) -> float:

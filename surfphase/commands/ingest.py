@@ -63,6 +63,7 @@ def _run(args: argparse.Namespace) -> int:
         crop=parse_crop(args.crop),
         out=Path(args.out),
         fit_size=args.fit_size,
+        native=args.native_masks,
     )
     sizes = ", ".join(
         f"{n} {c['count']}×{c['size'][1]}×{c['size'][0]}" for n, c in meta["cameras"].items()
@@ -101,5 +102,11 @@ def register(subparsers) -> None:
         help="with --scale auto: the fitted frame's longer side, pixels",
     )
     p.add_argument("--crop", default=None, help="x0,y0,w,h pixels of the undistorted image")
+    p.add_argument(
+        "--native-masks",
+        action="store_true",
+        help="also keep the undistorted frames before downscaling (OUT/native/, uint16) for "
+        "the mask stage",
+    )
     p.add_argument("--out", required=True, help="output folder")
     p.set_defaults(func=_run)

@@ -30,14 +30,17 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError("--window and --window-size go together")
     if args.window is not None:
         info = run_mesh_window(
-            args.fit, args.ingest, args.out, args.window, args.window_size, params, args.device
-        )
+            args.fit, args.ingest, args.out, args.window, args.window_size, params, args.device,
+            masks_dir=args.masks,
+        )  # fmt: skip
         print(
             f"mesh {info['session']}: window {args.window} ({len(info['frames'])} frames) "
             f"-> {args.out}"
         )
         return 0
-    summary = run_mesh(args.fit, args.ingest, args.out, params, device=args.device)
+    summary = run_mesh(
+        args.fit, args.ingest, args.out, params, device=args.device, masks_dir=args.masks
+    )
     rows = summary["frames"]
     n_v = sum(r["vertices"] for r in rows)
     print(f"mesh {summary['session']}: {len(rows)} frames, {n_v} vertices -> {args.out}")
@@ -70,6 +73,11 @@ def register(subparsers) -> None:
     )
     p.add_argument("--fit", required=True, help="fit folder (surfels.npz)")
     p.add_argument("--ingest", required=True, help="ingest folder (cameras.json, meta.json)")
+    p.add_argument(
+        "--masks",
+        default=None,
+        help="the session's mask folder: the meshes are carved by its silhouettes (carve_px)",
+    )
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument(
         "--params-json",

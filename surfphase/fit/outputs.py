@@ -213,6 +213,64 @@ def bubble_table(
     return table
 
 
+def read_anchors(path: Path, session: str) -> pd.DataFrame | None:
+    """The mask stage's ``anchors.csv`` (``frame, bubble, x, y, z, ...``), or None when
+    the masks have none (written before it existed)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    tab = pd.read_csv(path)
+    missing = {"frame", "bubble", "x", "y", "z"} - set(tab.columns)
+    if missing:
+        raise ValueError(f"{path}: session {session}: anchors lack columns {sorted(missing)}")
+    return tab
+
+
+def anchored_table(
+    table: pd.DataFrame,
+    anchors: pd.DataFrame,
+    nucleation_frames: set[int],
+    track_window_s: float,
+    track_order: int,
+) -> pd.DataFrame:
+    """``bubbles.csv`` with each bubble's centre from its triangulated silhouettes.
+
+    A bubble (id ≥ 1) is reported in the frames where ``anchors`` has its centre (both
+    input views see it and agree), at that centre; its velocity is the central difference
+    along each run of consecutive frames of the id (one-sided at the run's ends), or with
+    ``track_window_s`` > 0 both the centres and the velocities come from the moving
+    polynomial of :func:`smooth_tracks` along each run (so they agree). The nucleation
+    region (id 0) keeps its surfels' centroid, in the frames of ``nucleation_frames``
+    (its mask is seen there). ``n_surfels`` is kept.
+
+    Args:
+        table: :func:`bubble_table` without smoothing.
+        anchors: ``frame, bubble, x, y, z`` (m, lab frame).
+        nucleation_frames: session frame indices where a view's masks show id 0.
+        track_window_s, track_order: as ``fit: track_window_s``, ``track_order``.
+    """
+    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
+    nuc = table[(table["bubble"] == 0) & table["frame"].isin(sorted(nucleation_frames))]
+    bub = table[table["bubble"] >= 1].drop(columns=xyz + vel)
+    a = anchors[anchors["bubble"] >= 1][["frame", "bubble", *xyz]]
+    bub = bub.merge(a, on=["frame", "bubble"], how="inner")
+    bub = bub.sort_values(["bubble", "frame"], kind="stable").reset_index(drop=True)
+    f = bub["frame"].to_numpy(np.int64)
+    b = bub["bubble"].to_numpy(np.int64)
+    new_run = np.r_[True, (b[1:] != b[:-1]) | (f[1:] != f[:-1] + 1)]
+    seg = np.cumsum(new_run)
+    bub[vel] = np.nan
+    for s in np.unique(seg):
+        rows = np.flatnonzero(seg == s)
+        if len(rows) >= 2:
+            t = bub["time_s"].to_numpy()[rows]
+            bub.loc[rows, vel] = np.gradient(bub[xyz].to_numpy(np.float64)[rows], t, axis=0)
+    if track_window_s > 0 and len(bub):
+        smooth_tracks(bub, seg, track_window_s, track_order)
+    out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
+    return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
+
+
 def track_segments(
     table: pd.DataFrame, positions: list[int], bub: np.ndarray, w: np.ndarray
 ) -> np.ndarray:
@@ -355,7 +413,18 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
     shutil.rmtree(final, ignore_errors=True)
     os.replace(tmp_dir, final)
 
-    table = bubble_table(arrays, times, frames, float(p["track_window_s"]), int(p["track_order"]))
+    if p["anchor_centres"] and data.anchors is not None:
+        table = anchored_table(
+            bubble_table(arrays, times, frames),
+            data.anchors,
+            data.nucleation_frames(),
+            float(p["track_window_s"]),
+            int(p["track_order"]),
+        )
+    else:
+        table = bubble_table(
+            arrays, times, frames, float(p["track_window_s"]), int(p["track_order"])
+        )
     atomic_write_text(out_dir / "bubbles.csv", table.to_csv(index=False))
     curves = pd.DataFrame([row for r in records for row in r["curves"]])
     atomic_write_text(out_dir / "curves.csv", curves.to_csv(index=False))

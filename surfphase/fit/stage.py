@@ -139,16 +139,20 @@ DEFAULTS: dict = {
     # surfel centres are put back on or above it (a projected gradient step); None = off.
     "floor_y": 0.0,  # metres, lab frame
     # -- reported tracks (bubbles.csv) ---------------------------------------------------
-    "track_window_s": 0.0,  # > 0: centroids and velocities of each bubble track from a
+    # True: a bubble's (id >= 1) reported centre is its triangulated silhouette centre
+    # (the mask stage's anchors.csv), reported only in frames where both input views see
+    # it and agree; False: the centroid of its surfels, in every frame it has surfels.
+    "anchor_centres": True,
+    "track_window_s": 0.002,  # > 0: centroids and velocities of each bubble track from a
     # moving polynomial over this many seconds (Savitzky-Golay; 0: per-frame values)
-    "track_order": 2,  # polynomial order of that fit
+    "track_order": 1,  # polynomial order of that fit
     # Two views leave a bubble's extent along their bisector (the mean viewing direction)
     # unseen: surfels may sit anywhere in the visual hull's long corners. With a number k,
     # after every step a surfel farther than k·r along that axis from its bubble's centre
     # is put back at k·r (centre and r from the frame's masks: triangulated centroids, the
     # largest equivalent radius over the views; nearest bubble ≥ 1 by distance / r; the
     # nucleation region is left free). None = off.
-    "depth_bound": None,
+    "depth_bound": 1.2,
     # -- appearance -------------------------------------------------------------------
     # A backlit bubble is bright where the interface faces the camera and dark where it
     # is oblique, so one interface point looks different from each camera. True: every
@@ -260,6 +264,9 @@ class SessionData:
             )
         self.n_frames = min(s.shape[0] for s in self.stacks)
         self.merges = read_merges(masks_dir / "events.csv")
+        from surfphase.fit.outputs import read_anchors
+
+        self.anchors = read_anchors(masks_dir / "anchors.csv", self.session)
         idx = self.meta.get("frame_indices") or self.meta.get("frames")
         if isinstance(idx, list) and len(idx) >= self.n_frames:
             self.frame_indices = np.asarray(idx[: self.n_frames], dtype=np.int64)
@@ -285,6 +292,23 @@ class SessionData:
 
     def labels(self, t: int) -> list[np.ndarray]:
         return [np.asarray(s[t]).astype(np.int32) for s in self.label_stacks]
+
+    def anchor_centres(self, t: int) -> dict[int, np.ndarray]:
+        """``{bubble: (3,) triangulated centre (m)}`` at frame position ``t`` (the mask
+        stage's ``anchors.csv``; empty without it)."""
+        if self.anchors is None:
+            return {}
+        rows = self.anchors[self.anchors["frame"] == int(self.frame_indices[t])]
+        xyz = rows[["x", "y", "z"]].to_numpy(np.float64)
+        return {int(b): xyz[i] for i, b in enumerate(rows["bubble"])}
+
+    def nucleation_frames(self) -> set[int]:
+        """Session frame indices where some view's masks show the nucleation region."""
+        return {
+            int(self.frame_indices[t])
+            for t in range(self.n_frames)
+            if any(bool((np.asarray(s[t]) == 0).any()) for s in self.label_stacks)
+        }
 
     def fingerprint(self) -> str:
         h = hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode())
@@ -376,15 +400,23 @@ class DepthBounds:
 
 
 def depth_bounds(
-    cameras: Sequence[Camera], labels: Sequence[np.ndarray], k: float | None
+    cameras: Sequence[Camera],
+    labels: Sequence[np.ndarray],
+    k: float | None,
+    centres: dict[int, np.ndarray] | None = None,
 ) -> DepthBounds | None:
     """The ``depth_bound`` of one frame's masks (see ``DEFAULTS``), or None when off or
-    no bubble is seen in two views."""
+    no bubble is seen in two views. ``centres`` (m, by bubble id), where given, replace
+    the triangulated centroids of the frame's binary masks (the mask stage's sub-pixel
+    anchors)."""
     if k is None:
         return None
     spheres = init.bubble_spheres(cameras, labels, radius="max")
     if not spheres:
         return None
+    for b, c in (centres or {}).items():
+        if b in spheres:
+            spheres[b] = (np.asarray(c, dtype=np.float64), *spheres[b][1:])
     ids = sorted(spheres)
     axis = np.mean([c.view_dir for c in cameras], axis=0)
     axis /= np.linalg.norm(axis)
@@ -792,6 +824,12 @@ def _advect_velocities(
             if binding.track_continues(bub[ic], prev["bubble"][ip], w, w_prev, b) is None:
                 del vb[b]
         surfel_v[ic] = (cur["means"][ic].astype(np.float64) - prev["means"][ip]) / dt
+        if p["anchor_centres"]:
+            # Where both frames have the bubble's triangulated centre, its motion is the
+            # centre's (no surfel re-binding in it).
+            c1, c0 = data.anchor_centres(len(records) - 1), data.anchor_centres(len(records) - 2)
+            for b in [b for b in vb if b > 0 and b in c1 and b in c0]:
+                vb[b] = (c1[b] - c0[b]) / dt
     reseeded = cur.get("reseeded") or {}
     for b in np.unique(bub):
         if b > 0 and int(b) not in vb:
@@ -1008,7 +1046,8 @@ def run_fit(
             iters = int(p["iters_reseed"] if reseeded else p["iters_next"])
             strategy, geo_from = NoDensify(), 0
         t_opt = time.perf_counter()
-        bounds = depth_bounds(data.cameras, labels, p["depth_bound"])
+        centres = data.anchor_centres(t) if p["anchor_centres"] else None
+        bounds = depth_bounds(data.cameras, labels, p["depth_bound"], centres)
         fg = torch.as_tensor(np.stack(labels) >= 0, dtype=dtype, device=dev)
         if extra_views is None:
             rows = fit_frame(

@@ -13,6 +13,15 @@ Outputs in ``OUT``:
 * ``instances.csv`` — ``frame, camera, bubble, area, cx, cy, x0, y0, x1, y1, score``
   (pixels; ``score`` is the backend's confidence);
 * ``events.csv`` — ``frame, camera, event, parents, children`` (merge, split, detach);
+* ``anchors.csv`` — ``frame, bubble, x, y, z, reproj_px, size_ratio``: each bubble's
+  centre triangulated from its sub-pixel silhouette centroids in the first two views
+  (m, lab frame; :mod:`surfphase.masks.anchors`), where the views agree. Where they do
+  not, the bubble is removed from that frame's masks (``dropped_inconsistent`` in
+  ``masks.json``).
+
+With ``INGEST/native/`` (``ingest: native_masks``), the frames before downscaling are
+segmented and associated; the label stacks and ``instances.csv`` are then downscaled to
+``INGEST``'s frames, and ``anchors.csv`` keeps the native resolution.
 * ``overlays/frame_XXXXX.png`` — a few frames, views side by side;
 * ``masks.json`` — session, backend, parameters used, counts.
 
@@ -32,10 +41,11 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from surfphase.cameras import load_cameras
 from surfphase.io import atomic_write_json, atomic_write_text, load_stack, save_npy
-from surfphase.masks import classical
+from surfphase.masks import anchors, classical
 from surfphase.masks.associate import ASSOCIATE_DEFAULTS, associate
 from surfphase.masks.overlay import overlay_frame, save_png
 from surfphase.masks.sam_onnx import SAM_DEFAULTS, load_sam
@@ -47,6 +57,8 @@ DEFAULTS: dict = {
     "classical": dict(classical.CLASSICAL_DEFAULTS),
     "sam": dict(SAM_DEFAULTS),
     "associate": dict(ASSOCIATE_DEFAULTS),
+    # Triangulated centres and the two views' agreement (surfphase.masks.anchors).
+    "anchors": dict(anchors.ANCHOR_DEFAULTS),
     # Number of overlay pictures (evenly spaced frames).
     "overlay_frames": 4,
     # A frame whose intensities (0.1 to 99.9 percentile) span less than this fraction of
@@ -217,11 +229,12 @@ def check_bubbles_found(meta: Mapping, ingest_dir: Path, instances, cameras: Seq
 
 def segment_stack(
     stack: np.ndarray, params: Mapping, backend=None
-) -> tuple[np.ndarray, list, np.ndarray]:
+) -> tuple[np.ndarray, list, tuple[np.ndarray, np.ndarray]]:
     """Segment every frame of a (T, H, W) stack.
 
-    Returns (T, H, W) int32 labels, per-frame scores, and the (H, W) bool image of
-    the heated plate (static dark structure) found in the session's reference.
+    Returns (T, H, W) int32 labels, per-frame scores, and the session's background
+    model ``(background, static)`` (:func:`surfphase.masks.classical.session_background`;
+    ``static`` is the (H, W) bool image of the heated plate).
     """
     t_n, h, w = stack.shape[:3]
     labels = np.full((t_n, h, w), -1, np.int32)
@@ -236,7 +249,58 @@ def segment_stack(
         for t in range(t_n):
             labels[t], s = backend.generate(classical.to_unit_float(stack[t]), params["sam"])
             scores.append(s)
-    return labels, scores, bg[1]
+    return labels, scores, bg
+
+
+def frame_anchors(
+    stacks: Mapping[str, np.ndarray],
+    labels: Mapping[str, np.ndarray],
+    backgrounds: Mapping[str, tuple],
+    cameras: Mapping[str, object],
+    frames: np.ndarray,
+    params: Mapping,
+) -> pd.DataFrame:
+    """The triangulated centres (:func:`surfphase.masks.anchors.anchor_table`) of the
+    first two views' bubbles, from their sub-pixel silhouette centroids."""
+    names = list(stacks)[:2]
+    cp, ap = params["classical"], params["anchors"]
+    cents = []
+    for c in names:
+        per = []
+        for t in range(stacks[c].shape[0]):
+            con = classical.relative_contrast(stacks[c][t], cp, backgrounds[c])
+            per.append(anchors.coverage_centroids(con, labels[c][t], int(ap["ring_px"])))
+        cents.append(per)
+    return anchors.anchor_table([cameras[c].undistorted() for c in names], cents, frames, ap)
+
+
+def drop_inconsistent(
+    labels: dict[str, np.ndarray], instances: pd.DataFrame, table: pd.DataFrame
+) -> int:
+    """Remove, in place, each (frame position, bubble) whose two views disagree
+    (``consistent`` false in :func:`frame_anchors`' table, frames as positions) from every
+    view's labels; return how many. ``instances`` gets ``bubble = -1`` there."""
+    bad = table[~table["consistent"].astype(bool)]
+    for t, b in bad[["position", "bubble"]].itertuples(index=False):
+        for lab in labels.values():
+            lab[int(t)][lab[int(t)] == int(b)] = -1
+        sel = (instances["frame"] == int(t)) & (instances["bubble"] == int(b))
+        instances.loc[sel, "bubble"] = -1
+    return len(bad)
+
+
+def scaled_instances(instances: pd.DataFrame, sx: float, sy: float) -> pd.DataFrame:
+    """The instance table of labels downscaled by ``(sx, sy)`` (pixel-centre
+    convention ``u' = (u + 0.5)·s − 0.5``; areas × sx·sy; boxes rounded outwards)."""
+    out = instances.copy()
+    out["cx"] = (out["cx"] + 0.5) * sx - 0.5
+    out["cy"] = (out["cy"] + 0.5) * sy - 0.5
+    out["area"] = (out["area"] * sx * sy).round().astype(int)
+    out["x0"] = np.floor(out["x0"] * sx).astype(int)
+    out["y0"] = np.floor(out["y0"] * sy).astype(int)
+    out["x1"] = np.floor((out["x1"] + 1) * sx - 1e-9).astype(int)
+    out["y1"] = np.floor((out["y1"] + 1) * sy - 1e-9).astype(int)
+    return out
 
 
 def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = None) -> None:
@@ -250,15 +314,45 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
     ingest_dir, out_dir = Path(ingest_dir), Path(out_dir)
     p = merge_params(params)
     meta, cameras, stacks = read_ingest(ingest_dir)
-    blank_notes = check_dynamic_range(meta, ingest_dir, stacks, float(p["min_dynamic_range"]))
+    native = meta.get("native")
+    fit_stacks = stacks
+    seg_dir = ingest_dir
+    if native:
+        seg_dir = ingest_dir / str(native)
+        _, cameras, stacks = read_ingest(seg_dir)
+    blank_notes = check_dynamic_range(meta, seg_dir, stacks, float(p["min_dynamic_range"]))
     backend = load_sam(p["sam"]) if p["backend"] == "sam" else None
     t0 = time.perf_counter()
-    labels, scores, plates = {}, {}, {}
+    labels, scores, bgs = {}, {}, {}
     for name, st in stacks.items():
-        labels[name], scores[name], plates[name] = segment_stack(st, p, backend)
+        labels[name], scores[name], bgs[name] = segment_stack(st, p, backend)
+    plates = {name: bg[1] for name, bg in bgs.items()}
     t_seg = time.perf_counter() - t0
     bubble_labels, instances, events = associate(labels, scores, cameras, p["associate"], plates)
     check_bubbles_found(meta, ingest_dir, instances, list(stacks))
+    frames = np.asarray(meta.get("frame_indices") or range(len(next(iter(stacks.values())))))
+    anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "position"])
+    dropped = 0
+    if len(stacks) >= 2:
+        anchor_tab = frame_anchors(stacks, bubble_labels, bgs, cameras, frames, p)
+        pos = {int(f): k for k, f in enumerate(frames)}
+        anchor_tab["position"] = [pos[int(f)] for f in anchor_tab["frame"]]
+        dropped = drop_inconsistent(bubble_labels, instances, anchor_tab)
+        instances = instances[instances["bubble"] != -1].reset_index(drop=True)
+        anchor_tab = anchor_tab[anchor_tab["consistent"].astype(bool)]
+    if native:
+        for name in list(bubble_labels):
+            h, w = fit_stacks[name].shape[1:3]
+            full = bubble_labels[name]
+            bubble_labels[name] = np.stack(
+                [anchors.downsample_labels(full[t], (w, h)) for t in range(full.shape[0])]
+            )
+        parts = []
+        for name, g in instances.groupby("camera", sort=False):
+            h, w = fit_stacks[name].shape[1:3]
+            parts.append(scaled_instances(g, w / stacks[name].shape[2], h / stacks[name].shape[1]))
+        instances = pd.concat(parts).sort_index() if parts else instances
+        stacks = fit_stacks
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
@@ -266,6 +360,10 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
             save_npy(tmp / f"{name}_labels.npy", lab)
         atomic_write_text(tmp / "instances.csv", instances.to_csv(index=False, float_format="%.3f"))
         atomic_write_text(tmp / "events.csv", events.to_csv(index=False))
+        atomic_write_text(
+            tmp / "anchors.csv",
+            anchor_tab[anchors.ANCHOR_COLUMNS[:-1]].to_csv(index=False, float_format="%.9g"),
+        )
         n_frames = next(iter(stacks.values())).shape[0]
         k = max(0, min(int(p["overlay_frames"]), n_frames))
         for t in np.unique(np.linspace(0, n_frames - 1, k).round().astype(int)) if k else []:
@@ -287,6 +385,10 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
                 "instances": len(instances),
                 "bubbles": int(instances.loc[instances.bubble > 0, "bubble"].nunique()),
                 "events": len(events),
+                "native": bool(native),
+                "segmented_size": {c: list(st.shape[1:3][::-1]) for c, st in labels.items()},
+                "anchors": len(anchor_tab),
+                "dropped_inconsistent": dropped,
                 "segment_seconds": round(t_seg, 3),
                 "warnings": blank_notes,
             },

@@ -73,6 +73,10 @@ DEFAULTS: dict = {
     # The heated surface (y = 0, docs/conventions.md §1): the volume below it is solid plate, so
     # the fused volume is cut there and bubbles sitting on it get a flat base; None = off.
     "floor_y": 0.0,  # metres, lab frame
+    # With the session's masks: the fused volume is intersected with the masks' visual
+    # hull (every input view's silhouettes, grown by this many pixels), so nothing is
+    # meshed where an input view sees no bubble (carve_px: None = off).
+    "carve_px": 1.0,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }
 
@@ -114,9 +118,12 @@ def mesh_frame(
     inputs: list[Camera],
     p: dict,
     device: str = "cpu",
+    silhouettes: list[np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mesh of one frame's surfels ((N, 3) m, (N, 4), (N, 2) ln m, (N,)) seen by the
-    input cameras; returns (V, 3) vertices (metres) and (F, 3) faces."""
+    input cameras; returns (V, 3) vertices (metres) and (F, 3) faces. ``silhouettes``:
+    per input camera, the frame's (H, W) bool foreground of its masks, for
+    ``carve_px``."""
     extent = float(np.ptp(means, axis=0).max())
     voxel = float(p["voxel_m"]) if p["voxel_m"] else extent / float(p["voxels"])
     trunc = float(p["trunc_voxels"]) * voxel
@@ -138,6 +145,12 @@ def mesh_frame(
     sdf = fuse_depths(depths, cams, origin, shape, voxel, trunc)
     if p["floor_y"] is not None:
         sdf = cut_below(sdf, origin, voxel, float(p["floor_y"]), trunc)
+    if silhouettes is not None and p["carve_px"] is not None:
+        hull = silhouette_distance(
+            origin, sdf.shape, voxel, [c.undistorted() for c in inputs], silhouettes,
+            float(p["carve_px"]),
+        )  # fmt: skip
+        sdf = np.maximum(sdf, np.clip(hull, -trunc, trunc).astype(sdf.dtype))
     verts, faces = marching_cubes_mesh(sdf, origin, voxel)
     return clean_mesh(
         verts,
@@ -157,6 +170,43 @@ def cut_below(
     y = np.asarray(origin, np.float64)[1] + voxel * np.arange(sdf.shape[1])
     below = np.clip(floor_y - y, -trunc, trunc).astype(sdf.dtype)
     return np.maximum(sdf, below[None, :, None])
+
+
+def silhouette_distance(
+    origin: np.ndarray,
+    shape: tuple[int, int, int],
+    voxel: float,
+    cameras: list[Camera],
+    silhouettes: list[np.ndarray],
+    grow_px: float = 0.0,
+) -> np.ndarray:
+    """Approximate signed distance (metres, positive outside) of every voxel centre of
+    a grid (``shape``, voxel [0, 0, 0] centred at ``origin``, edge ``voxel`` m) to the
+    visual hull of ``silhouettes`` ((H, W) bool per camera, grown by ``grow_px``).
+
+    Per view: the image's signed distance to its silhouette (pixels, Euclidean distance
+    transform, positive outside) at the pixel the voxel projects to, times depth / focal
+    length; the hull's is the largest over the views. A voxel outside a view's image or
+    behind it is not constrained by that view.
+    """
+    from scipy import ndimage as ndi
+
+    axes = [np.asarray(origin, np.float64)[i] + voxel * np.arange(shape[i]) for i in range(3)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    out = np.full(len(X), -np.inf)
+    for cam, sil in zip(cameras, silhouettes, strict=True):
+        sil = np.asarray(sil, bool)
+        signed = ndi.distance_transform_edt(~sil) - ndi.distance_transform_edt(sil) - grow_px
+        z = cam.world_to_camera(X)[:, 2]
+        uv = cam.project(X, distort=False)
+        h, w = sil.shape
+        col, row = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+        seen = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+        d = np.full(len(X), -np.inf)
+        d[seen] = signed[row[seen], col[seen]] * z[seen] / f
+        out = np.maximum(out, d)
+    return out.reshape(shape)
 
 
 def _code_fingerprint() -> str:
@@ -205,9 +255,16 @@ class _Session:
     device: str
     key: str
     picks: list[int]  # positions (0-based) in surfels.npz to mesh, in order
+    masks: list[np.ndarray] | None = None  # per input camera, (T, H, W) labels (carve_px)
 
 
-def _open_session(fit_dir: Path, ingest_dir: Path, params: dict | None, device: str) -> _Session:
+def _open_session(
+    fit_dir: Path,
+    ingest_dir: Path,
+    params: dict | None,
+    device: str,
+    masks_dir: Path | None = None,
+) -> _Session:
     from surfphase.device import resolve_device
 
     p = mesh_params(params)
@@ -235,8 +292,27 @@ def _open_session(fit_dir: Path, ingest_dir: Path, params: dict | None, device: 
             raise ValueError(f"{fit_dir}: frame position {t} outside 0..{n_frames - 1}")
     if "time_s" not in surfels or np.shape(surfels["time_s"]) != (n_frames,):
         raise ValueError(f"{surfels_path}: no time_s per frame (seconds), needed for the .pvd")
+    masks = None
+    if masks_dir is not None and p["carve_px"] is not None:
+        masks = []
+        for cam in inputs:
+            path = Path(masks_dir) / f"{cam.name}_labels.npy"
+            if not path.is_file():
+                raise FileNotFoundError(f"{path}: session {session}: no masks of {cam.name}")
+            lab = np.load(path, mmap_mode="r")
+            if lab.shape[0] < n_frames or lab.shape[1:] != (cam.height, cam.width):
+                raise ValueError(
+                    f"{path}: session {session}: masks {lab.shape} do not match the fit's "
+                    f"{n_frames} frames of {cam.width}×{cam.height} pixels"
+                )
+            masks.append(lab)
     key = mesh_key(surfels_path, cam_path, p, dev)
-    return _Session(surfels, inputs, session, p, dev, key, picks)
+    if masks is not None:
+        h = hashlib.sha256(key.encode())
+        for lab in masks:
+            h.update(np.ascontiguousarray(lab).tobytes())
+        key = h.hexdigest()
+    return _Session(surfels, inputs, session, p, dev, key, picks, masks)
 
 
 def _frame_file(work: Path, frame: int) -> Path:
@@ -305,6 +381,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
                 s.inputs,
                 s.p,
                 s.device,
+                None if s.masks is None else [np.asarray(m[t]) >= 0 for m in s.masks],
             )
             if len(verts):
                 vel = vertex_velocities(verts, surf["means"][t][a], surf["velocity"][t][a])
@@ -394,6 +471,7 @@ def run_mesh(
     params: dict | None = None,
     device: str = "auto",
     work_dir: str | os.PathLike | None = None,
+    masks_dir: str | os.PathLike | None = None,
 ) -> dict:
     """Mesh every fitted frame of a session; write ``OUT/<frame:06d>.ply`` and
     ``OUT/mesh.json`` (see the module docstring); return the mesh.json content.
@@ -401,10 +479,12 @@ def run_mesh(
     Each finished frame is checkpointed in ``work_dir`` (default ``<out_dir>.partial``,
     removed at the end): a killed run, rerun, meshes only the frames not yet finished.
     ``out_dir`` appears whole (renamed from a temporary folder) or not at all.
+    ``masks_dir``: the session's masks (``<cam>_labels.npy``), for ``carve_px``.
     """
     out_dir = Path(out_dir)
     work = Path(work_dir) if work_dir else out_dir.parent / (out_dir.name + ".partial")
-    s = _open_session(Path(fit_dir), Path(ingest_dir), params, device)
+    masks = Path(masks_dir) if masks_dir else None
+    s = _open_session(Path(fit_dir), Path(ingest_dir), params, device, masks)
     records = _mesh_positions(s, s.picks, work)
     summary = _write_meshes(records, out_dir, s.session, s.device, s.p)
     shutil.rmtree(work, ignore_errors=True)
@@ -419,6 +499,7 @@ def run_mesh_window(
     size: int,
     params: dict | None = None,
     device: str = "auto",
+    masks_dir: str | os.PathLike | None = None,
 ) -> dict:
     """Mesh window ``index`` (0-based) of ``size`` consecutive fitted frames.
 
@@ -430,7 +511,8 @@ def run_mesh_window(
     """
     out_dir = Path(out_dir)
     work = out_dir.parent / (out_dir.name + ".partial")
-    s = _open_session(Path(fit_dir), Path(ingest_dir), params, device)
+    masks = Path(masks_dir) if masks_dir else None
+    s = _open_session(Path(fit_dir), Path(ingest_dir), params, device, masks)
     positions = window_positions(s.picks, index, size)
     records = _mesh_positions(s, positions, work)
     keep = {_frame_file(work, int(r["frame"])).name for r in records}

@@ -74,6 +74,7 @@ rule mesh_compare:
     input:
         fit=lambda wc: compare_fit(wc.session, wc.name),
         ingest=f"{RESULTS}/{{session}}/ingest",
+        masks=f"{RESULTS}/{{session}}/masks",
     output:
         directory(compare_mesh("{session}", "{name}")),
     wildcard_constraints:
@@ -92,6 +93,7 @@ rule mesh_compare:
         "../../envs/surfphase.yaml"
     shell:
         "{params.surfphase} mesh --fit $(dirname {input.fit:q}) --ingest {input.ingest:q}"
+        " --masks {input.masks:q}"
         " --out {output:q} --device {params.device} --threads {threads}"
         " --params-json {params.settings:q} > {log:q} 2>&1"
 

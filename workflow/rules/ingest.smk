@@ -24,6 +24,7 @@ rule ingest:
             if config["ingest"].get("crop")
             else ""
         ),
+        native="--native-masks" if config["ingest"]["native_masks"] else "",
         code=code_version("ingest", "video", "labformats", "commands/ingest"),
     log:
         "logs/ingest/{session}.log",
@@ -35,5 +36,5 @@ rule ingest:
         "{params.surfphase} ingest --session {wildcards.session} --rig {params.rig:q}"
         " --rigs-sheet {params.rigs_sheet:q} --cameras {params.cameras:q} {params.cams}"
         " --fps {params.fps} {params.frames} --scale {params.scale}"
-        " --fit-size {params.fit_size} {params.crop}"
+         " --fit-size {params.fit_size} {params.crop} {params.native}"
         " --out {output:q} > {log:q} 2>&1"

@@ -34,6 +34,7 @@ if MESH_WINDOW > 0:
         input:
             fit=lambda wc: final_fit(wc.session),
             ingest=f"{RESULTS}/{{session}}/ingest",
+            masks=f"{RESULTS}/{{session}}/masks",
         output:
             temp(directory(f"{RESULTS}/{{session}}/mesh_windows/{{window}}")),
         wildcard_constraints:
@@ -53,6 +54,7 @@ if MESH_WINDOW > 0:
             "../../envs/surfphase.yaml"
         shell:
             "{params.surfphase} mesh --fit $(dirname {input.fit:q}) --ingest {input.ingest:q}"
+            " --masks {input.masks:q}"
             " --out {output:q} --window {wildcards.window} --window-size {params.size}"
             " --device {params.device} --threads {threads}"
             " --params-json {params.settings:q} > {log:q} 2>&1"
@@ -83,6 +85,7 @@ else:
         input:
             fit=lambda wc: final_fit(wc.session),
             ingest=f"{RESULTS}/{{session}}/ingest",
+            masks=f"{RESULTS}/{{session}}/masks",
         output:
             directory(f"{RESULTS}/{{session}}/mesh"),
         params:
@@ -99,5 +102,6 @@ else:
             "../../envs/surfphase.yaml"
         shell:
             "{params.surfphase} mesh --fit $(dirname {input.fit:q}) --ingest {input.ingest:q}"
+            " --masks {input.masks:q}"
             " --out {output:q} --device {params.device} --threads {threads}"
             " --params-json {params.settings:q} > {log:q} 2>&1"
