@@ -48,7 +48,9 @@ def coverage_centroids(
     are partly covered and, in a backlit image, partly dark, so each pixel of the band
     within ``ring_px`` of the mask's outline (and not inside another region) is
     weighted by its relative darkness over the typical darkness of the mask's own edge
-    pixels (the 75th percentile), clipped to [0, 1]; interior pixels weigh 1.
+    pixels (the 75th percentile), clipped to [0, 1]; interior pixels weigh 1. A band
+    pixel counts for the region nearest to it only, so two bubbles close together do not
+    share their edges' darkness.
 
     Args:
         contrast: (H, W) relative darkness in [0, 1]
@@ -64,18 +66,22 @@ def coverage_centroids(
     c = np.asarray(contrast, dtype=np.float64)
     out: dict[int, tuple[float, float, float]] = {}
     ids = np.unique(lab[lab >= 0])
+    owner = lab
+    if ring_px > 0 and len(ids):
+        _, (ri, ci) = ndi.distance_transform_edt(lab < 0, return_indices=True)
+        owner = lab[ri, ci]
     for b in ids:
         m = lab == b
         ys, xs = np.nonzero(m)
         pad = int(ring_px) + 1
         y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, lab.shape[0])
         x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, lab.shape[1])
-        mm, cc, ll = m[y0:y1, x0:x1], c[y0:y1, x0:x1], lab[y0:y1, x0:x1]
+        mm, cc, ll = m[y0:y1, x0:x1], c[y0:y1, x0:x1], owner[y0:y1, x0:x1]
         w = mm.astype(np.float64)
         if ring_px > 0:
             inner = ndi.binary_erosion(mm)
             edge = mm & ~inner
-            band = ndi.binary_dilation(mm, iterations=int(ring_px)) & ~inner & ((ll < 0) | mm)
+            band = ndi.binary_dilation(mm, iterations=int(ring_px)) & ~inner & (ll == b)
             ref = float(np.percentile(cc[edge], 75)) if edge.any() else 0.0
             if ref > 1e-3 and inner.any():
                 w = np.where(inner, 1.0, np.where(band, np.clip(cc / ref, 0.0, 1.0), 0.0))

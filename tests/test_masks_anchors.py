@@ -1,0 +1,193 @@
+"""Triangulated silhouette centres (surfphase.masks.anchors), the labels' downscaling, the
+anchored bubbles table (surfphase.fit.outputs.anchored_table) and the mesh's visual-hull
+carve, against analytic truth and brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import ndimage as ndi
+
+from surfphase.cameras import look_at
+from surfphase.fit.outputs import anchored_table
+from surfphase.masks.anchors import (
+    anchor_table,
+    apparent_size,
+    coverage_centroids,
+    downsample_labels,
+)
+from surfphase.masks.stage import scaled_instances
+from surfphase.mesh.stage import silhouette_distance
+
+
+def disk_cover(h: int, w: int, u0: float, v0: float, r: float, ss: int = 16) -> np.ndarray:
+    """(H, W) fraction of each pixel inside the disk (centre (u0, v0) px, radius r px),
+    by ss × ss supersampling (pixel centres at integers, docs/conventions.md §4)."""
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    cover = np.zeros((h, w))
+    for dv in off:
+        for du in off:
+            cover += (uu + du - u0) ** 2 + (vv + dv - v0) ** 2 <= r * r
+    return cover / ss**2
+
+
+@pytest.mark.parametrize("u0, v0, r", [(20.3, 17.8, 3.2), (31.71, 24.45, 6.6), (15.5, 15.5, 2.1)])
+def test_coverage_centroid_is_sub_pixel_where_the_binary_one_is_not(u0, v0, r):
+    cover = disk_cover(48, 56, u0, v0, r)
+    contrast = 0.6 * cover  # a dark disk on a flat backlight: darkness ∝ cover
+    labels = np.where(cover >= 0.5, 0, -1)
+    binary = ndi.center_of_mass(labels == 0)  # reference: scipy, (row, col)
+    u_b, v_b, _ = coverage_centroids(contrast, labels, ring_px=0)[0]
+    assert (u_b, v_b) == pytest.approx((binary[1], binary[0]), abs=1e-9)
+    u, v, area = coverage_centroids(contrast, labels, ring_px=2)[0]
+    err = np.hypot(u - u0, v - v0)
+    assert err < 0.02, err
+    assert err <= np.hypot(u_b - u0, v_b - v0) + 1e-9
+    assert area == pytest.approx(np.pi * r * r, rel=0.06)
+
+
+def test_coverage_centroids_keep_out_of_a_neighbour():
+    a, b = disk_cover(40, 60, 20.2, 20.0, 5.0), disk_cover(40, 60, 32.0, 20.0, 5.0)
+    labels = np.full((40, 60), -1)
+    labels[a >= 0.5] = 3
+    labels[b >= 0.5] = 7
+    cen = coverage_centroids(0.5 * np.clip(a + b, 0, 1), labels, ring_px=2)
+    assert abs(cen[3][0] - 20.2) < 0.05 and abs(cen[7][0] - 32.0) < 0.05
+
+
+def _rig():
+    target = np.array([0.0, 0.005, 0.0])
+    c0 = look_at("cam0", [-0.04, 0.006, -0.11], target, 900.0, 160, 120)
+    c1 = look_at("cam1", [0.04, 0.006, -0.11], target, 880.0, 160, 120)
+    return c0, c1
+
+
+def test_anchor_table_triangulates_and_checks_agreement():
+    c0, c1 = _rig()
+    X = np.array([0.0011, 0.0052, -0.0007])
+    r = 0.0009
+    cents = []
+    for cam in (c0, c1):
+        uv = cam.project(X[None], distort=False)[0]
+        depth = cam.world_to_camera(X[None])[0, 2]
+        area = np.pi * (r * np.sqrt(cam.K[0, 0] * cam.K[1, 1]) / depth) ** 2
+        cents.append({1: (uv[0], uv[1], area)})
+    tab = anchor_table([c0, c1], [[cents[0]], [cents[1]]], np.array([5]))
+    row = tab.iloc[0]
+    assert row["frame"] == 5 and row["bubble"] == 1 and bool(row["consistent"])
+    assert np.allclose(row[["x", "y", "z"]].to_numpy(float), X, atol=1e-12)
+    assert row["reproj_px"] < 1e-6 and row["size_ratio"] == pytest.approx(1.0, abs=1e-9)
+    assert apparent_size(c0, X, cents[0][1][2]) == pytest.approx(r, rel=1e-9)
+    # A centroid 3 px off the epipolar line: the views disagree.
+    off = {1: (cents[1][1][0], cents[1][1][1] + 3.0, cents[1][1][2])}
+    assert not bool(anchor_table([c0, c1], [[cents[0]], [off]], np.array([5]))["consistent"][0])
+    # One silhouette four times the other's area (twice the size): they disagree.
+    big = {1: (*cents[1][1][:2], 4 * cents[1][1][2])}
+    bad = anchor_table([c0, c1], [[cents[0]], [big]], np.array([5])).iloc[0]
+    assert bad["size_ratio"] == pytest.approx(2.0, rel=1e-6) and not bool(bad["consistent"])
+    # Seen by one view only, or the nucleation region: no centre.
+    assert anchor_table([c0, c1], [[cents[0]], [{0: cents[1][1]}]], np.array([5])).empty
+
+
+def test_downsample_labels_is_the_block_majority():
+    rng = np.random.default_rng(0)
+    lab = np.full((40, 60), -1)
+    for k, (u, v, r) in enumerate([(10.3, 12.1, 6), (30.2, 20.7, 9), (47.0, 28.0, 5)]):
+        lab[disk_cover(40, 60, u, v, r, ss=4) >= 0.5] = k
+    lab[rng.random(lab.shape) < 0.02] = 1  # scattered pixels of region 1
+    out = downsample_labels(lab, (30, 20))
+    # Brute force: each 2 × 2 block's most frequent region, if it covers > half.
+    ref = np.full((20, 30), -1)
+    for i in range(20):
+        for j in range(30):
+            block = lab[2 * i : 2 * i + 2, 2 * j : 2 * j + 2].ravel()
+            vals, counts = np.unique(block[block >= 0], return_counts=True)
+            if len(vals) and counts.max() > 2:
+                ref[i, j] = vals[np.argmax(counts)]
+    assert np.array_equal(out, ref)
+
+
+def test_scaled_instances_match_the_downscaled_masks():
+    lab = np.full((64, 80), -1)
+    lab[disk_cover(64, 80, 33.4, 27.9, 10.0, ss=4) >= 0.5] = 0
+    rows, cols = np.nonzero(lab == 0)
+    inst = pd.DataFrame(
+        {"frame": [0], "camera": ["cam0"], "bubble": [1], "area": [rows.size],
+         "cx": [cols.mean()], "cy": [rows.mean()], "x0": [cols.min()], "y0": [rows.min()],
+         "x1": [cols.max()], "y1": [rows.max()], "score": [1.0]}
+    )  # fmt: skip
+    small = downsample_labels(lab, (40, 32))
+    r2, c2 = np.nonzero(small == 0)
+    s = scaled_instances(inst, 0.5, 0.5).iloc[0]
+    # Within the downscaled mask's own quantisation (a fraction of its pixel).
+    assert s["cx"] == pytest.approx(c2.mean(), abs=0.15)
+    assert s["cy"] == pytest.approx(r2.mean(), abs=0.15)
+    assert s["area"] == pytest.approx(r2.size, rel=0.08)
+    assert s["x0"] <= c2.min() and s["x1"] >= c2.max() and s["y0"] <= r2.min()
+
+
+def _surfel_table(frames, bubbles):
+    rows = []
+    for f in frames:
+        for b in bubbles:
+            rows.append((f, f / 1000.0, b, 9.0, 9.0, 9.0, 9.0, 9.0, 9.0, 50))
+    cols = ["frame", "time_s", "bubble", "x", "y", "z", "vx", "vy", "vz", "n_surfels"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def test_anchored_table_reports_triangulated_tracks():
+    frames = np.arange(10)
+    v = np.array([0.02, 0.25, -0.01])
+    x0 = np.array([0.001, 0.002, 0.0])
+    anchors = pd.DataFrame(
+        [(f, 1, *(x0 + v * f / 1000.0)) for f in frames if f != 6]  # frame 6: not agreed
+        + [(f, 2, 0.0, 0.01 + 0.3 * f / 1000.0, 0.0) for f in frames[:3]],
+        columns=["frame", "bubble", "x", "y", "z"],
+    )
+    table = _surfel_table(frames, [0, 1, 2, 3])  # bubble 3: no centre in any frame
+    out = anchored_table(table, anchors, {2, 3}, 0.0, 1)
+    assert set(out[out.bubble == 0]["frame"]) == {2, 3}  # the nucleation region's frames
+    assert 3 not in set(out["bubble"]) and 6 not in set(out[out.bubble == 1]["frame"])
+    b1 = out[out.bubble == 1].set_index("frame")
+    assert np.allclose(b1.loc[9, ["x", "y", "z"]].to_numpy(float), x0 + v * 0.009, atol=1e-15)
+    # Runs 0-5 and 7-9: central differences inside, one-sided at their ends, all exact.
+    assert np.allclose(b1[["vx", "vy", "vz"]].to_numpy(float), v, atol=1e-9)
+    assert np.allclose(out[out.bubble == 2][["vy"]].to_numpy(float), 0.3, atol=1e-9)
+    assert (out[out.bubble == 1]["n_surfels"] == 50).all()
+    # Track smoothing (order 1 over 5 frames) keeps a straight track and agrees with it.
+    rng = np.random.default_rng(1)
+    noisy = anchors.copy()
+    noisy[["x", "y", "z"]] += rng.normal(0, 2e-6, (len(noisy), 3))
+    sm = anchored_table(table, noisy, set(), 0.005, 1)
+    b1 = sm[sm.bubble == 1].sort_values("frame")
+    run = b1[b1.frame <= 5]
+    grad = np.gradient(run[["x", "y", "z"]].to_numpy(float), run["time_s"].to_numpy(), axis=0)
+    assert np.allclose(grad, run[["vx", "vy", "vz"]].to_numpy(float), atol=1e-12)
+    assert np.abs(run[["vx", "vy", "vz"]].to_numpy(float) - v).max() < 0.01
+
+
+def test_silhouette_distance_against_brute_force_projection():
+    c0, c1 = _rig()
+    X = np.array([0.0, 0.005, 0.0])
+    r = 0.001
+    sils = []
+    for cam in (c0, c1):
+        uv = cam.project(X[None], distort=False)[0]
+        depth = cam.world_to_camera(X[None])[0, 2]
+        rp = r * cam.K[0, 0] / depth
+        sils.append(disk_cover(cam.height, cam.width, uv[0], uv[1], rp, ss=2) >= 0.5)
+    origin, voxel, shape = X - 0.002, 1e-4, (41, 41, 41)
+    d = silhouette_distance(origin, shape, voxel, [c0, c1], sils)
+    axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
+    P = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = np.ones(len(P), bool)
+    for cam, sil in zip((c0, c1), sils, strict=True):
+        uv = np.round(cam.project(P, distort=False)).astype(int)
+        inside &= sil[uv[:, 1], uv[:, 0]]
+    d = d.ravel()
+    assert np.array_equal(d <= 0, inside)  # the hull is where every view sees the disk
+    # The sphere is inside its own hull, the points 2 r away are not.
+    dist = np.linalg.norm(P - X, axis=1)
+    assert (d[dist < 0.8 * r] < 0).all() and (d[dist > 2 * r] > 0).any()
