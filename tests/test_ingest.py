@@ -309,3 +309,28 @@ def test_truncated_lab_recording_is_a_clear_error(session, tmp_path, fmt):
     msg = str(e.value)
     assert "session s16" in msg and "camera cam1" in msg and str(data) in msg
     assert "truncated" in msg
+
+
+def test_native_frames_are_the_unscaled_ingest(session, tmp_path):
+    # ingest: native_masks keeps the frames before downscaling for the mask stage; they
+    # must be what an ingest at scale 1 writes (to uint16 quantisation), with its cameras.
+    root, cams, src = session
+    kw = {"frames": "0:5", "crop": (4, 6, 56, 52)}
+    full, _ = _ingest(root, cams, src, "tif", scale=1.0, **kw)
+    out = tmp_path / "both"
+    meta = ingest_session("s01", cams, {n: src[n]["tif"] for n in cams}, 100.0, scale=0.5,
+                          out=out, native=True, **kw)  # fmt: skip
+    assert meta["native"] == "native"
+    got, ref = load_cameras(out / "native" / "cameras.json"), load_cameras(full / "cameras.json")
+    for cam in cams:
+        nat = np.load(out / "native" / f"{cam}.npy")
+        assert nat.dtype == np.uint16 and nat.shape == (5, 52, 56)
+        np.testing.assert_allclose(nat / 65535.0, load_frames(full, cam), atol=0.5 / 65535 + 1e-7)
+        np.testing.assert_allclose(got[cam].K, ref[cam].K, atol=1e-12)
+        assert load_frames(out, cam).shape == (5, 26, 28)
+    native_meta = json.loads((out / "native" / "meta.json").read_text())
+    assert native_meta["cameras"] == list(cams) and native_meta["frame_indices"] == list(range(5))
+    # At scale 1 there is nothing to keep: no native folder, and a stale one goes.
+    again = ingest_session("s01", cams, {n: src[n]["tif"] for n in cams}, 100.0, scale=1.0,
+                           out=out, native=True, **kw)  # fmt: skip
+    assert again["native"] is None and not (out / "native").exists()

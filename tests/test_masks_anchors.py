@@ -4,6 +4,10 @@ carve, against analytic truth and brute force."""
 
 from __future__ import annotations
 
+import json
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -191,3 +195,69 @@ def test_silhouette_distance_against_brute_force_projection():
     # The sphere is inside its own hull, the points 2 r away are not.
     dist = np.linalg.norm(P - X, axis=1)
     assert (d[dist < 0.8 * r] < 0).all() and (d[dist > 2 * r] > 0).any()
+
+
+def _downscaled_ingest(native: Path, out: Path, scale: float = 0.5) -> None:
+    """``out``: the ingest a run with ``ingest: scale`` and ``native_masks`` writes for the
+    frames of ``native`` (cv2.INTER_AREA, cameras by the ingest's own pixel convention)."""
+    import cv2
+
+    from surfphase.cameras import load_cameras, save_cameras
+    from surfphase.ingest import output_camera
+
+    cams = load_cameras(native / "cameras.json")
+    meta = json.loads((native / "meta.json").read_text())
+    out.mkdir(parents=True)
+    small = {}
+    for name, cam in cams.items():
+        st = np.load(native / f"{name}.npy")
+        size = (int(round(cam.width * scale)), int(round(cam.height * scale)))
+        np.save(
+            out / f"{name}.npy",
+            np.stack([cv2.resize(f, size, interpolation=cv2.INTER_AREA) for f in st]),
+        )
+        small[name] = output_camera(cam, None, size)
+    save_cameras(out / "cameras.json", small)
+    shutil.copytree(native, out / "native")
+    (out / "meta.json").write_text(json.dumps({**meta, "native": "native"}))
+
+
+def test_mask_stage_centres_at_native_resolution(tmp_path):
+    from test_masks_scene import rising, write_ingest
+
+    from surfphase.cameras import load_cameras
+    from surfphase.masks.stage import run_mask_stage
+
+    tracks = [rising(-0.0015, 0.004, 0.0, 0.0006), rising(0.0016, 0.0035, 0.001, 0.0008)]
+    n = 6
+    native = tmp_path / "native"
+    write_ingest(native, tracks, n, size=128)
+    both = tmp_path / "ingest"
+    _downscaled_ingest(native, both)
+    coarse = tmp_path / "coarse"  # the same fit-size frames, without native ones
+    shutil.copytree(both, coarse, ignore=shutil.ignore_patterns("native"))
+    meta = json.loads((coarse / "meta.json").read_text())
+    (coarse / "meta.json").write_text(json.dumps({**meta, "native": None}))
+    run_mask_stage(both, tmp_path / "m_native")
+    run_mask_stage(coarse, tmp_path / "m_coarse")
+    info = json.loads((tmp_path / "m_native" / "masks.json").read_text())
+    assert info["native"] and info["segmented_size"]["cam0"] == [128, 128]
+    small = load_cameras(both / "cameras.json")["cam0"]
+    labels = np.load(tmp_path / "m_native" / "cam0_labels.npy")
+    assert labels.shape == (n, small.height, small.width) == (n, 64, 64)
+    inst = pd.read_csv(tmp_path / "m_native" / "instances.csv")
+    assert inst["cx"].max() < 64 and set(inst["bubble"]) == {1, 2}
+    errors = {}
+    for name in ("m_native", "m_coarse"):
+        tab = pd.read_csv(tmp_path / name / "anchors.csv")
+        assert len(tab) == 2 * n and (tab["reproj_px"] < 1).all()
+        err = []
+        for r in tab.itertuples():
+            # Bubble ids follow first appearance, then x: 1 is the left sphere.
+            c, rad = tracks[int(r.bubble) - 1](int(r.frame))
+            err.append(np.linalg.norm(np.array([r.x, r.y, r.z]) - c) / rad)
+        errors[name] = float(np.mean(err))
+    # A sphere's silhouettes' centroids triangulate to its centre (to perspective's
+    # second order); the native masks get closer than the fit-size ones.
+    assert errors["m_native"] < 0.03, errors
+    assert errors["m_native"] < errors["m_coarse"], errors
