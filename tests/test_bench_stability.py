@@ -33,3 +33,8 @@ def test_noise_has_the_asked_spread_and_stays_in_range():
     noisy = add_noise(frames, 1e-4, seed=0)
     assert noisy.dtype == np.float32 and np.std(noisy - frames) == pytest.approx(1e-4, rel=0.05)
     assert add_noise(np.ones((1, 8, 8), np.float32), 1e-2, 0).max() <= 1.0
+    # The ingest's native uint16 frames get the same spread of their range, as uint16.
+    native = np.full((4, 64, 64), 30000, np.uint16)
+    n16 = add_noise(native, 1e-4, seed=0)
+    assert n16.dtype == np.uint16
+    assert np.std(n16.astype(float) - 30000) / 65535 == pytest.approx(1e-4, rel=0.05)

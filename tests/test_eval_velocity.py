@@ -230,3 +230,29 @@ def test_relative_gate_matching_and_component_errors():
     m2 = velocity.match_bubbles_relative(pred, truth, gate_r_eq=0.7)
     assert len(m2) == 2
     assert velocity.component_errors(m2)["vz"] == pytest.approx(0.05)
+
+
+def test_gated_assignment_gates_before_assigning():
+    import itertools
+
+    from surfphase.eval.velocity import gated_assignment
+
+    # A far report (row 2) must not take row 1's perfect partner to lower the sum.
+    cost = np.array([[0.0, 9.0, 9.0], [9.0, 0.01, 9.0], [9.0, 7.5, 20.0]])
+    assert sorted(gated_assignment(cost, 0.5)) == [(0, 0), (1, 1)]
+    # Brute force on random small cases: the most pairs within the gate, then the least
+    # summed cost among those.
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        n, m = (int(k) for k in rng.integers(1, 5, size=2))
+        c = rng.exponential(1.0, size=(n, m))
+        c[rng.random((n, m)) < 0.1] = np.inf
+        got = gated_assignment(c, 0.8)
+        best = (0, 0.0)
+        for perm in itertools.permutations(range(max(n, m)), n):
+            pairs = [(i, j) for i, j in enumerate(perm) if j < m and c[i, j] <= 0.8]
+            key = (len(pairs), -sum(c[i, j] for i, j in pairs))
+            best = max(best, key)
+        assert len(got) == best[0]
+        assert sum(c[i, j] for i, j in got) == pytest.approx(-best[1])
+        assert len({i for i, _ in got}) == len(got) == len({j for _, j in got})

@@ -21,7 +21,8 @@ Steps (:func:`run_accuracy_bench`):
 
 Matching (velocities, precision and recall): per frame, reported and true centroids are
 paired one-to-one by the Hungarian algorithm on ``distance / r_eq`` of the true bubble,
-gated at :data:`GATE_R_EQ` (0.5 r_eq). Reported bubble-frames are the rows of the fit's
+gated at :data:`GATE_R_EQ` (0.5 r_eq) before the assignment
+(:func:`surfphase.eval.velocity.gated_assignment`: most pairs within the gate first). Reported bubble-frames are the rows of the fit's
 ``bubbles.csv``: ids ≥ 1 count as real when matched, the nucleation region (id 0) when a
 true bubble is attached to the plate in that frame (its surface within
 :data:`ATTACHED_R_EQ` r_eq of it). Recall is over the free (not attached) true
@@ -45,7 +46,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import yaml
-from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from surfphase.eval import baseline as bl
@@ -114,11 +114,9 @@ def detection(
                 bub[XYZ].to_numpy(np.float64)[:, None] - g[XYZ].to_numpy(np.float64)[None], axis=-1
             )
             cost = d / g["r_eq"].to_numpy(np.float64)[None]
-            cost = np.where(np.isfinite(cost), cost, 1e9)
-            for i, j in zip(*linear_sum_assignment(cost), strict=True):
-                if cost[i, j] <= gate_r_eq:
-                    real += 1
-                    matched_true.add(int(g["bubble"].iloc[j]))
+            for _, j in velocity.gated_assignment(cost, gate_r_eq):
+                real += 1
+                matched_true.add(int(g["bubble"].iloc[j]))
         free = set(seen_both.get(f, set())) - set(attached.get(f, set()))
         free &= set(g["bubble"].astype(int))
         free_seen += len(free)

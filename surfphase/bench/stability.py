@@ -33,10 +33,17 @@ GATE_M = 0.5e-3  # matching gate of noisy to reference bubbles, metres
 
 
 def add_noise(stack: np.ndarray, noise: float, seed: int) -> np.ndarray:
-    """(T, H, W) float32 frames in [0, 1] plus N(0, noise²), clipped to [0, 1]."""
+    """(T, H, W) frames plus N(0, noise²) of their range, clipped to it: float32 frames
+    in [0, 1], or integer frames (the ingest's native uint16) over their dtype's range,
+    rounded back to that dtype."""
     rng = np.random.default_rng(seed)
-    out = np.asarray(stack, np.float32) + rng.normal(0.0, noise, stack.shape).astype(np.float32)
-    return np.clip(out, 0.0, 1.0)
+    a = np.asarray(stack)
+    full = float(np.iinfo(a.dtype).max) if np.issubdtype(a.dtype, np.integer) else 1.0
+    out = a.astype(np.float32) / np.float32(full)
+    out = np.clip(out + rng.normal(0.0, noise, a.shape).astype(np.float32), 0.0, 1.0)
+    if full == 1.0:
+        return out
+    return np.round(out * full).astype(a.dtype)
 
 
 def event_frames(events_csv: Path, margin: int) -> set[int]:
@@ -85,11 +92,12 @@ def perturbed_run(ref_dir: Path, work: Path, session: str, noise: float, seed: i
     shutil.copytree(res_ref / "calib", res / "calib")
     ing_ref, ing = res_ref / session / "ingest", res / session / "ingest"
     shutil.copytree(ing_ref, ing)
-    cams = sorted(p for p in ing_ref.glob("*.npy"))
+    # The fitted frames, and the native ones the mask stage segments (ingest/native/).
+    cams = sorted(ing_ref.glob("*.npy")) + sorted(ing_ref.glob("native/*.npy"))
     for k, p in enumerate(cams):
         if noise > 0:
             stack = np.load(p, mmap_mode="r")
-            np.save(ing / p.name, add_noise(stack, noise, seed * 1000 + k))
+            np.save(ing / p.relative_to(ing_ref), add_noise(stack, noise, seed * 1000 + k))
     # The copies are the newest files: only the mask stage and the fit are out of date
     # (and only modification times decide: the copies carry no Snakemake records).
     now = time.time()

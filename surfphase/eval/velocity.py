@@ -14,6 +14,25 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import linear_sum_assignment
 
+
+def gated_assignment(cost: np.ndarray, gate: float) -> list[tuple[int, int]]:
+    """One-to-one pairs ``(i, j)`` of an (n, m) cost matrix with ``cost ≤ gate``.
+
+    The gate applies before the assignment: pairs above it cost more than any set of
+    pairs within it, so the Hungarian algorithm (``scipy.optimize.linear_sum_assignment``)
+    first maximises the number of pairs within the gate, then minimises their summed
+    cost. (Gating after an ungated assignment lets a far report take a close report's
+    partner to lower the total.) Non-finite costs are never paired.
+    """
+    c = np.asarray(cost, dtype=np.float64)
+    ok = np.isfinite(c) & (c <= gate)
+    if not ok.any():
+        return []
+    big = float(c[ok].sum()) + 1.0  # more than any set of pairs within the gate
+    rows, cols = linear_sum_assignment(np.where(ok, c, big))
+    return [(int(i), int(j)) for i, j in zip(rows, cols, strict=True) if ok[i, j]]
+
+
 #: Default gating distance between matched centroids, metres (bubbles are ~0.5–1 mm).
 MAX_MATCH_DIST = 1.5e-3
 
@@ -46,9 +65,7 @@ def match_bubbles(
         P = p[["x", "y", "z"]].to_numpy(np.float64)
         G = g[["x", "y", "z"]].to_numpy(np.float64)
         d = np.linalg.norm(P[:, None] - G[None], axis=-1)
-        for i, j in zip(*linear_sum_assignment(d), strict=True):
-            if d[i, j] > max_dist:
-                continue
+        for i, j in gated_assignment(d, max_dist):
             v = p[["vx", "vy", "vz"]].to_numpy(np.float64)[i]
             gv = g[["vx", "vy", "vz"]].to_numpy(np.float64)[j]
             rows.append(
@@ -107,9 +124,7 @@ def match_bubbles_relative(
         )
         r = g["r_eq"].to_numpy(np.float64)
         cost = d / r[None]
-        for i, j in zip(*linear_sum_assignment(cost), strict=True):
-            if cost[i, j] > gate_r_eq:
-                continue
+        for i, j in gated_assignment(cost, gate_r_eq):
             v = p[vel].to_numpy(np.float64)[i]
             gv = g[vel].to_numpy(np.float64)[j]
             rows.append(
