@@ -191,7 +191,7 @@ def _register_fit2(subparsers) -> None:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from surfphase.fit.bench import run_benchmark
+    from surfphase.bench.fit import run_benchmark
 
     result = run_benchmark(
         Path(args.out),
@@ -206,7 +206,7 @@ def _bench(args: argparse.Namespace) -> int:
 
 
 def _bench2(args: argparse.Namespace) -> int:
-    from surfphase.fit.bench_stage2 import run_benchmark as run_benchmark2
+    from surfphase.bench.fit_stage2 import run_benchmark as run_benchmark2
 
     result = run_benchmark2(
         args.ingest,

@@ -105,7 +105,7 @@ def register(subparsers) -> None:
 def _bench(args: argparse.Namespace) -> int:
     import torch
 
-    from surfphase.mesh.bench import bench_mesh
+    from surfphase.bench.mesh import bench_mesh
 
     torch.set_num_threads(args.threads)
     params = json.loads(args.params_json) if args.params_json else {}
