@@ -340,7 +340,7 @@ def make_optimizer(model: SurfelModel, p: dict) -> torch.optim.Adam:
 
 def _render(model: SurfelModel, viewmats, Ks, width, height, backgrounds: torch.Tensor):
     """Render the model over per-view background images (C, H, W, D)."""
-    from surfphase.render import rasterize_surfels
+    from surfphase.render import over_background, rasterize_surfels
 
     rgb, alpha, meta = rasterize_surfels(
         model.means,
@@ -353,7 +353,7 @@ def _render(model: SurfelModel, viewmats, Ks, width, height, backgrounds: torch.
         width,
         height,
     )
-    return rgb + (1.0 - alpha) * backgrounds, alpha, meta
+    return over_background(rgb, alpha, backgrounds), alpha, meta
 
 
 def estimate_backgrounds(data: SessionData, n_frames: int, max_frames: int = 64) -> np.ndarray:
