@@ -53,7 +53,7 @@ from surfphase.device import resolve_device
 from surfphase.fit import binding, init, losses, register
 from surfphase.fit.densify import Densify2DGS, NoDensify, append_surfels
 from surfphase.fit.model import HALF_OPACITY_GF, SurfelModel, per_surfel
-from surfphase.io import atomic_path
+from surfphase.io import atomic_path, code_fingerprint
 from surfphase.progress import Progress
 from surfphase.render.shading import monotone_raw
 
@@ -634,15 +634,13 @@ def _load_checkpoint(ckpt: Path, key: str) -> tuple[dict | None, list[dict]]:
     return None, []
 
 
+#: The sources the fit's results depend on (:func:`surfphase.io.code_fingerprint`).
+CODE_SOURCES = ("fit", "render")
+
+
 def _code_fingerprint() -> str:
     """Hash of the sources the fit's results depend on (fit and renderer packages)."""
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for pkg in ("fit", "render"):
-        for f in sorted((root / pkg).rglob("*.py")):
-            h.update(f.name.encode())
-            h.update(f.read_bytes())
-    return h.hexdigest()
+    return code_fingerprint(CODE_SOURCES)
 
 
 def _run_key(data: SessionData, p: dict) -> str:
