@@ -14,7 +14,7 @@ import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -113,6 +113,34 @@ def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
 def load_stack(path: str | os.PathLike) -> np.ndarray:
     """Memory-map a frame stack ``.npy`` (frames × H × W[, C]) without reading it all."""
     return np.load(path, mmap_mode="r")
+
+
+def stack_frame_indices(meta: Mapping, n_frames: int, meta_path: str | os.PathLike) -> np.ndarray:
+    """The session frame index of each of a stack's first ``n_frames`` positions.
+
+    Read from an ingest ``meta.json`` (already parsed into ``meta``), whose
+    ``frame_indices`` lists one integer per stack position (ingest writes it). Without
+    that key (a folder written by hand): ``0 … n_frames − 1``.
+
+    Returns:
+        (n_frames,) int64.
+
+    Raises:
+        ValueError: naming ``meta_path``, when ``frame_indices`` is not a list of integers
+            or lists fewer frames than ``n_frames`` (the times would be wrong).
+    """
+    idx = meta.get("frame_indices")
+    if idx is None:
+        return np.arange(n_frames, dtype=np.int64)
+    if not isinstance(idx, list) or not all(
+        isinstance(i, int) and not isinstance(i, bool) for i in idx
+    ):
+        raise ValueError(f"{meta_path}: frame_indices must be a list of integers")
+    if len(idx) < n_frames:
+        raise ValueError(
+            f"{meta_path}: frame_indices lists {len(idx)} frames, the stacks hold {n_frames}"
+        )
+    return np.asarray(idx[:n_frames], dtype=np.int64)
 
 
 #: The ``surfphase`` package folder, which :func:`code_fingerprint` names sources from.

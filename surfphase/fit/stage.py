@@ -53,7 +53,7 @@ from surfphase.device import resolve_device
 from surfphase.fit import binding, init, losses, register
 from surfphase.fit.densify import Densify2DGS, NoDensify, append_surfels
 from surfphase.fit.model import HALF_OPACITY_GF, SurfelModel, per_surfel
-from surfphase.io import atomic_path, code_fingerprint
+from surfphase.io import atomic_path, code_fingerprint, stack_frame_indices
 from surfphase.progress import Progress
 from surfphase.render.shading import monotone_raw
 
@@ -267,11 +267,7 @@ class SessionData:
         from surfphase.fit.outputs import read_anchors
 
         self.anchors = read_anchors(masks_dir / "anchors.csv", self.session)
-        idx = self.meta.get("frame_indices") or self.meta.get("frames")
-        if isinstance(idx, list) and len(idx) >= self.n_frames:
-            self.frame_indices = np.asarray(idx[: self.n_frames], dtype=np.int64)
-        else:
-            self.frame_indices = np.arange(self.n_frames, dtype=np.int64)
+        self.frame_indices = stack_frame_indices(self.meta, self.n_frames, meta_path)
         self.times = self.frame_indices / self.fps
         self.height, self.width = self.stacks[0].shape[1:3]
 
