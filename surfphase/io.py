@@ -1,5 +1,5 @@
-"""Small file helpers shared by every stage: whole-or-nothing writes, frame stacks and
-the code fingerprint of checkpoints.
+"""Small file helpers shared by every stage: whole-or-nothing writes, frame stacks and their
+frame indices, and the code fingerprint of checkpoints.
 
 A stage writes each output to a temporary name in the same folder, then renames it
 (``os.replace`` is atomic on POSIX), so a killed job never leaves a half-written file
