@@ -1,4 +1,5 @@
-"""Small file helpers shared by every stage: whole-or-nothing writes and frame stacks.
+"""Small file helpers shared by every stage: whole-or-nothing writes, frame stacks and their
+frame indices, and the code fingerprint of checkpoints.
 
 A stage writes each output to a temporary name in the same folder, then renames it
 (``os.replace`` is atomic on POSIX), so a killed job never leaves a half-written file
@@ -8,11 +9,12 @@ under the final name.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -111,3 +113,63 @@ def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
 def load_stack(path: str | os.PathLike) -> np.ndarray:
     """Memory-map a frame stack ``.npy`` (frames × H × W[, C]) without reading it all."""
     return np.load(path, mmap_mode="r")
+
+
+def stack_frame_indices(meta: Mapping, n_frames: int, meta_path: str | os.PathLike) -> np.ndarray:
+    """The session frame index of each of a stack's first ``n_frames`` positions.
+
+    Read from an ingest ``meta.json`` (already parsed into ``meta``), whose
+    ``frame_indices`` lists one integer per stack position (ingest writes it). Without
+    that key (a folder written by hand): ``0 … n_frames − 1``.
+
+    Returns:
+        (n_frames,) int64.
+
+    Raises:
+        ValueError: naming ``meta_path``, when ``frame_indices`` is not a list of integers
+            or lists fewer frames than ``n_frames`` (the times would be wrong).
+    """
+    idx = meta.get("frame_indices")
+    if idx is None:
+        return np.arange(n_frames, dtype=np.int64)
+    if not isinstance(idx, list) or not all(
+        isinstance(i, int) and not isinstance(i, bool) for i in idx
+    ):
+        raise ValueError(f"{meta_path}: frame_indices must be a list of integers")
+    if len(idx) < n_frames:
+        raise ValueError(
+            f"{meta_path}: frame_indices lists {len(idx)} frames, the stacks hold {n_frames}"
+        )
+    return np.asarray(idx[:n_frames], dtype=np.int64)
+
+
+#: The ``surfphase`` package folder, which :func:`code_fingerprint` names sources from.
+PACKAGE_ROOT = Path(__file__).resolve().parent
+
+
+def source_files(parts: Sequence[str], root: Path = PACKAGE_ROOT) -> list[Path]:
+    """The source files that ``parts`` name, in hashing order.
+
+    Each part is a path relative to ``root``: a file (``"cameras.py"``) stands for
+    itself, a folder (``"fit"``) for every ``*.py`` under it, recursively, sorted by
+    path. Parts keep their order: ``["cameras.py", "mesh", "render"]`` gives
+    ``cameras.py``, then the sorted ``mesh`` files, then the sorted ``render`` ones.
+    """
+    files: list[Path] = []
+    for part in parts:
+        path = root / part
+        files += sorted(path.rglob("*.py")) if path.is_dir() else [path]
+    return files
+
+
+def code_fingerprint(parts: Sequence[str], root: Path = PACKAGE_ROOT) -> str:
+    """SHA-256 hex digest of the sources a stage's results depend on.
+
+    For each file of :func:`source_files` in turn: its name (without the folder, UTF-8)
+    then its bytes. A checkpoint keyed on it is stale once any of those files changes.
+    """
+    h = hashlib.sha256()
+    for f in source_files(parts, root):
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()

@@ -147,7 +147,7 @@ def render_frame(
         grey (C, H, W) float32 in [0, 1] (colour channels averaged) and alpha (C, H, W).
     """
     from surfphase.fit.outputs import frame_colors
-    from surfphase.render import camera_tensors, rasterize_surfels
+    from surfphase.render import camera_tensors, over_background, rasterize_surfels
 
     dev = torch.device(device)
     alive = np.asarray(surfels["alive"][t], bool)
@@ -167,7 +167,8 @@ def render_frame(
         )  # fmt: skip
     grey = rgb.mean(-1).cpu().numpy()
     a = alpha[..., 0].cpu().numpy()
-    return np.clip(grey + (1 - a) * background, 0, 1).astype(np.float32), a.astype(np.float32)
+    image = np.clip(over_background(grey, a, background), 0, 1)
+    return image.astype(np.float32), a.astype(np.float32)
 
 
 def to_uint16(frames: np.ndarray) -> np.ndarray:

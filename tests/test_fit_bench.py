@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from surfphase.fit.bench import match_bubbles, velocity_error
+from surfphase.bench.fit import match_bubbles, velocity_error
 
 
 def test_match_bubbles_hungarian_with_gate_and_error():

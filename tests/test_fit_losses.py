@@ -66,6 +66,25 @@ def test_photometric_loss_is_sum_over_views_of_l1_dssim_mix():
     assert abs(float(l1v) - float((x - y).abs().mean())) < 1e-12
 
 
+def test_photometric_loss_is_the_sum_of_the_terms_bit_for_bit():
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(3, 20, 18, 2, generator=g).requires_grad_()
+    y = torch.rand(3, 20, 18, 2, generator=g)
+    loss, l1m, dsm = losses.photometric_loss(x, y, 0.3)
+    (gx,) = torch.autograd.grad(loss, x)
+    # The formula as photometric_loss wrote it out before it called photometric_terms.
+    l1_v = (x - y).abs().flatten(1).mean(dim=1)
+    dssim_v = 1.0 - losses.ssim_map(x, y).flatten(1).mean(dim=1)
+    ref = ((1 - 0.3) * l1_v + 0.3 * dssim_v).sum()
+    (gref,) = torch.autograd.grad(ref, x)
+    assert torch.equal(loss, ref) and torch.equal(gx, gref)
+    assert torch.equal(l1m, l1_v.sum() / 3) and torch.equal(dsm, dssim_v.sum() / 3)
+    loss_v, l1_t, ds_t = losses.photometric_terms(x, y, 0.3)
+    assert (
+        torch.equal(loss_v.sum(), loss) and torch.equal(l1_t, l1_v) and torch.equal(ds_t, dssim_v)
+    )
+
+
 def test_normal_consistency_zero_when_aligned_one_when_orthogonal():
     n = torch.zeros(1, 4, 4, 3)
     n[..., 2] = 1

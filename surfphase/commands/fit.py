@@ -7,6 +7,8 @@ import argparse
 import json
 from pathlib import Path
 
+from surfphase.commands import read_json_object
+
 
 def _read_config(path: str) -> dict:
     """The top-level mapping of a config YAML/JSON file (errors name the file)."""
@@ -45,14 +47,7 @@ def _run(args: argparse.Namespace) -> int:
     from surfphase.fit.stage import run_fit
 
     params, cfg_device = _load_config(args.config)
-    if args.params_json:
-        try:
-            extra = json.loads(args.params_json)
-        except ValueError as e:
-            raise ValueError(f"--params-json: not valid JSON ({e})") from e
-        if not isinstance(extra, dict):
-            raise ValueError("--params-json: expected a JSON object of fit parameters")
-        params.update(extra)
+    params.update(read_json_object(args.params_json, what="fit parameters"))
     if args.frames is not None:
         params["frames"] = args.frames
     if args.no_sdf:
@@ -90,7 +85,8 @@ def register(subparsers) -> None:
     p.add_argument(
         "--params-json",
         default=None,
-        help="fit parameters as a JSON object (over --config; see surfphase.fit.stage.DEFAULTS)",
+        help="fit parameters as a JSON object or .json file (over --config; see "
+        "surfphase.fit.stage.DEFAULTS)",
     )
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
     p.add_argument("--frames", type=int, default=None, help="fit only the first N frames")
@@ -100,18 +96,6 @@ def register(subparsers) -> None:
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.set_defaults(func=_run)
     _register_fit2(subparsers)
-
-
-def _json_object(text: str | None, flag: str) -> dict:
-    if not text:
-        return {}
-    try:
-        obj = json.loads(text)
-    except ValueError as e:
-        raise ValueError(f"{flag}: not valid JSON ({e})") from e
-    if not isinstance(obj, dict):
-        raise ValueError(f"{flag}: expected a JSON object")
-    return obj
 
 
 def _load_config2(path: str | None) -> tuple[dict, dict, str | None]:
@@ -131,8 +115,8 @@ def _run2(args: argparse.Namespace) -> int:
     from surfphase.fit.stage2 import run_fit_stage2
 
     fit, fit2, cfg_device = _load_config2(args.config)
-    fit.update(_json_object(args.fit_json, "--fit-json"))
-    fit2.update(_json_object(args.params_json, "--params-json"))
+    fit.update(read_json_object(args.fit_json, "--fit-json"))
+    fit2.update(read_json_object(args.params_json))
     if args.frames is not None:
         fit2["frames"] = args.frames
     if args.threads:
@@ -175,13 +159,15 @@ def _register_fit2(subparsers) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", help="config YAML: its 'fit:' and 'fit2:' sections")
     p.add_argument(
-        "--fit-json", default=None, help="stage-1 fit settings as a JSON object (over 'fit:')"
+        "--fit-json",
+        default=None,
+        help="stage-1 fit settings as a JSON object or .json file (over 'fit:')",
     )
     p.add_argument(
         "--params-json",
         default=None,
-        help="stage-2 settings as a JSON object (over 'fit2:'; surfphase.fit.stage2.DEFAULTS "
-        "and any fit key)",
+        help="stage-2 settings as a JSON object or .json file (over 'fit2:'; "
+        "surfphase.fit.stage2.DEFAULTS and any fit key)",
     )
     p.add_argument("--device", choices=["auto", "cpu", "cuda"], default=None)
     p.add_argument("--frames", type=int, default=None, help="fit only the first N frames")
@@ -191,7 +177,7 @@ def _register_fit2(subparsers) -> None:
 
 
 def _bench(args: argparse.Namespace) -> int:
-    from surfphase.fit.bench import run_benchmark
+    from surfphase.bench.fit import run_benchmark
 
     result = run_benchmark(
         Path(args.out),
@@ -199,14 +185,14 @@ def _bench(args: argparse.Namespace) -> int:
         threads=args.threads,
         device=args.device,
         variants=tuple(v for v in args.variants.split(",") if v),
-        params=json.loads(args.params) if args.params else None,
+        params=read_json_object(args.params, "--params", "fit parameters"),
     )
     print(json.dumps(result, indent=1))
     return 0
 
 
 def _bench2(args: argparse.Namespace) -> int:
-    from surfphase.fit.bench_stage2 import run_benchmark as run_benchmark2
+    from surfphase.bench.fit_stage2 import run_benchmark as run_benchmark2
 
     result = run_benchmark2(
         args.ingest,
@@ -242,7 +228,9 @@ def register_bench(bench_subparsers) -> None:
         default="guided,no_guidance",
         help="comma-separated runs: guided, no_guidance, no_sdf (default guided,no_guidance)",
     )
-    p.add_argument("--params", default=None, help="JSON overrides of the fit parameters")
+    p.add_argument(
+        "--params", default=None, help="fit parameter overrides: a JSON object or .json file"
+    )
     p.set_defaults(func=_bench)
     q = bench_subparsers.add_parser(
         "fit2",

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from surfphase.commands import read_json_object
+
 
 def _load_config(path: str | None) -> dict:
     """The ``masks`` section of a config YAML (empty without a file)."""
@@ -25,30 +27,11 @@ def _load_config(path: str | None) -> dict:
     return masks
 
 
-def _params_json(text: str | None) -> dict:
-    """``--params-json``: a JSON object (the ``masks`` section) or a .json file holding one."""
-    import json
-
-    if not text:
-        return {}
-    src = text
-    p = Path(text)
-    if not text.lstrip().startswith("{") and p.is_file():
-        src = p.read_text()
-    try:
-        obj = json.loads(src)
-    except ValueError as e:
-        raise ValueError(f"--params-json: not valid JSON ({e})") from e
-    if not isinstance(obj, dict):
-        raise ValueError("--params-json: expected a JSON object")
-    return obj
-
-
 def _run(args: argparse.Namespace) -> int:
     from surfphase.masks.stage import run_mask_stage
 
     params = dict(_load_config(args.config))
-    params.update(_params_json(args.params_json))
+    params.update(read_json_object(args.params_json))
     if args.backend:
         params["backend"] = args.backend
     run_mask_stage(Path(args.ingest), Path(args.out), params)

@@ -3,25 +3,14 @@
 from __future__ import annotations
 
 import argparse
-import json
 
-
-def _params(text: str | None) -> dict:
-    if not text:
-        return {}
-    try:
-        params = json.loads(text)
-    except ValueError as e:
-        raise ValueError(f"--params-json: not valid JSON ({e})") from e
-    if not isinstance(params, dict):
-        raise ValueError("--params-json: expected a JSON object of mesh parameters")
-    return params
+from surfphase.commands import read_json_object
 
 
 def _run(args: argparse.Namespace) -> int:
     from surfphase.mesh.stage import run_mesh, run_mesh_window
 
-    params = _params(args.params_json)
+    params = read_json_object(args.params_json, what="mesh parameters")
     if args.threads:
         import torch
 
@@ -82,7 +71,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--params-json",
         default=None,
-        help='mesh parameters as JSON, e.g. \'{"voxels": 80, "frames": [0, 1]}\'',
+        help='mesh parameters as JSON, e.g. \'{"voxels": 80, "frames": [0, 1]}\', or a .json file',
     )
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
@@ -105,10 +94,10 @@ def register(subparsers) -> None:
 def _bench(args: argparse.Namespace) -> int:
     import torch
 
-    from surfphase.mesh.bench import bench_mesh
+    from surfphase.bench.mesh import bench_mesh
 
     torch.set_num_threads(args.threads)
-    params = json.loads(args.params_json) if args.params_json else {}
+    params = read_json_object(args.params_json, what="mesh parameters")
     frames = [int(f) for f in args.frames.split(",")]
     df = bench_mesh(args.fit, args.ingest, args.gt, args.out, frames, params, args.device)
     print(df.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
@@ -130,7 +119,7 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--gt", required=True, help="ground-truth folder (meshes/, bubbles.csv)")
     p.add_argument("--out", required=True, help="folder for the meshes")
     p.add_argument("--frames", default="0,8,16", help="frame positions, comma-separated")
-    p.add_argument("--params-json", default=None, help="mesh parameters as JSON")
+    p.add_argument("--params-json", default=None, help="mesh parameters as JSON (or a .json file)")
     p.add_argument("--device", default="cpu", choices=["auto", "cpu", "cuda"])
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads")
     p.set_defaults(func=_bench)

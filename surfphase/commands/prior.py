@@ -16,29 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
+from surfphase.commands import read_json_object
+
 
 def _set_threads(n: int | None) -> None:
     if n:
         import torch
 
         torch.set_num_threads(int(n))
-
-
-def _params(text: str | None) -> dict:
-    """``--params-json``: a JSON object, or the path of a JSON file holding one."""
-    if not text:
-        return {}
-    path = Path(text)
-    try:
-        if path.suffix == ".json" and path.is_file():
-            obj = json.loads(path.read_text())
-        else:
-            obj = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"--params-json: not valid JSON ({e})") from e
-    if not isinstance(obj, dict):
-        raise ValueError("--params-json: expected a JSON object")
-    return obj
 
 
 def register(subparsers) -> None:
@@ -173,7 +158,12 @@ def _torch_threads() -> int:
 def _train(args: argparse.Namespace) -> int:
     _set_threads(args.threads)
     rep = train_prior(
-        args.clips, args.out, args.backend, _params(args.params_json), args.device, args.samples
+        args.clips,
+        args.out,
+        args.backend,
+        read_json_object(args.params_json),
+        args.device,
+        args.samples,
     )
     print(f"wrote {args.out} (training {rep['train_s']:.1f} s, samples {rep['sample_s']:.1f} s)")
     return 0
@@ -327,7 +317,9 @@ def _bench(args: argparse.Namespace) -> int:
             clips_spec = str(Path(tmp) / "clips")
         out = args.out or Path(tmp) / "prior"
         c0 = time.process_time()
-        rep = train_prior(clips_spec, out, "embedded", _params(args.params_json), args.device)
+        rep = train_prior(
+            clips_spec, out, "embedded", read_json_object(args.params_json), args.device
+        )
         train_cpu = time.process_time() - c0
         _, clips = read_clips(clips_spec)
         view = clips[0]

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import json
+
+from surfphase.commands import read_json_object
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -14,14 +15,7 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.threads:
         torch.set_num_threads(int(args.threads))
-    params = {}
-    if args.params_json:
-        try:
-            params = json.loads(args.params_json)
-        except ValueError as e:
-            raise ValueError(f"--params-json: not valid JSON ({e})") from e
-        if not isinstance(params, dict):
-            raise ValueError("--params-json: expected a JSON object of view parameters")
+    params = read_json_object(args.params_json, what="view parameters")
     surfels = args.fit / "surfels.npz" if args.fit.is_dir() else args.fit
     s = render_views(surfels, args.ingest, args.out, params, resolve_device(args.device))
     print(
@@ -49,7 +43,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--params-json",
         default=None,
-        help='view parameters as JSON, e.g. \'{"n_views": 11, "step_deg": 30, '
+        help='view parameters as JSON (or a .json file), e.g. \'{"n_views": 11, "step_deg": 30, '
         '"reference": "cam0"}\'',
     )
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])

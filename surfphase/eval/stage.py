@@ -64,7 +64,7 @@ import pandas as pd
 from surfphase.cameras import Camera, load_cameras
 from surfphase.eval import baseline as bl
 from surfphase.eval import geometry, image_metrics, reference2d, regions, velocity
-from surfphase.io import atomic_write_json, atomic_write_text
+from surfphase.io import atomic_write_json, atomic_write_text, stack_frame_indices
 
 METRIC_KEYS = ("l1", "psnr", "ssim")
 
@@ -102,11 +102,7 @@ def read_session(ingest_dir: Path, masks_dir: Path) -> dict:
     if len(cameras) < 2:
         raise ValueError(f"{ingest_dir}: session {session}: need ≥ 2 cameras with frames and masks")
     T = min(lab.shape[0] for lab in labels)
-    idx = meta.get("frame_indices") or meta.get("frames")
-    if isinstance(idx, list) and len(idx) >= T:
-        frames = np.asarray(idx[:T], dtype=np.int64)
-    else:
-        frames = np.arange(T, dtype=np.int64)
+    frames = stack_frame_indices(meta, T, meta_path)
     return {
         "session": session,
         "fps": fps,

@@ -15,9 +15,10 @@
   per-frame loop, and :data:`~surfphase.fit.stage.DEFAULTS` (every hyperparameter);
 * :mod:`surfphase.fit.stage2` — :func:`~surfphase.fit.stage2.run_fit_stage2`, the same
   loop restarted from the stage-1 surfels with the refined orbit views as weighted
-  extra supervision (docs/method.md §9); :mod:`surfphase.fit.bench_stage2` times its steps;
+  extra supervision (docs/method.md §9); :mod:`surfphase.bench.fit_stage2` times its steps;
 * :mod:`surfphase.fit.outputs` — ``surfels.npz`` (format table), ``bubbles.csv``,
-  ``curves.csv``, ``summary.json``, ``renders/``;
-* :mod:`surfphase.fit.bench` — ``surfphase bench fit`` (the only module that imports
-  :mod:`surfphase.synth`, to build its ground truth).
+  ``curves.csv``, ``summary.json``, ``renders/``.
+
+The benchmark ``surfphase bench fit`` lives in :mod:`surfphase.bench.fit`; it imports
+:mod:`surfphase.synth` to build its ground truth, which no module of this package does.
 """

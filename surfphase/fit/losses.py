@@ -71,31 +71,30 @@ def ssim(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
     return ssim_map(img1, img2).mean()
 
 
-def photometric_loss(
-    rendered: torch.Tensor, observed: torch.Tensor, lambda_dssim: float = 0.2
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``(1−λ)·L1 + λ·(1 − SSIM)`` of (C, H, W, D) images, summed over the C views.
-
-    Returns ``(loss, l1_mean, dssim_mean)``; the last two are per-view means for logging.
-    """
-    C = rendered.shape[0]
-    l1_v = (rendered - observed).abs().flatten(1).mean(dim=1)
-    dssim_v = 1.0 - ssim_map(rendered, observed).flatten(1).mean(dim=1)
-    loss = ((1 - lambda_dssim) * l1_v + lambda_dssim * dssim_v).sum()
-    return loss, l1_v.sum() / C, dssim_v.sum() / C
-
-
 def photometric_terms(
     rendered: torch.Tensor, observed: torch.Tensor, lambda_dssim: float = 0.2
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-view terms of :func:`photometric_loss` for weighted sums over views.
+    """Per-view photometric terms of (C, H, W, D) images, for weighted sums over views.
 
     Returns ``(loss_v, l1_v, dssim_v)``, each (C,): ``(1−λ)·L1 + λ·(1 − SSIM)`` of every
-    view, and its two parts.
+    view, and its two parts (L1 the mean absolute error, D-SSIM ``1 −`` the mean SSIM).
     """
     l1_v = (rendered - observed).abs().flatten(1).mean(dim=1)
     dssim_v = 1.0 - ssim_map(rendered, observed).flatten(1).mean(dim=1)
     return (1 - lambda_dssim) * l1_v + lambda_dssim * dssim_v, l1_v, dssim_v
+
+
+def photometric_loss(
+    rendered: torch.Tensor, observed: torch.Tensor, lambda_dssim: float = 0.2
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`photometric_terms` of (C, H, W, D) images summed over the C views.
+
+    Returns ``(loss, l1_mean, dssim_mean)``, scalars; the last two are per-view means
+    for logging.
+    """
+    loss_v, l1_v, dssim_v = photometric_terms(rendered, observed, lambda_dssim)
+    C = rendered.shape[0]
+    return loss_v.sum(), l1_v.sum() / C, dssim_v.sum() / C
 
 
 def normal_consistency(

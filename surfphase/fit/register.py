@@ -66,7 +66,7 @@ def register_bubbles(
     Returns:
         ``{bubble: (3,) translation applied, metres}`` for every translated bubble.
     """
-    from surfphase.render import rasterize_surfels
+    from surfphase.render import over_background, rasterize_surfels
 
     bubble = np.asarray(bubble).reshape(-1)
     if bubble.shape[0] != model.n:
@@ -97,7 +97,7 @@ def register_bubbles(
         # different order on every run once there are ~10k surfels (not bit-for-bit).
         means = base + torch.cat([shift, zero]).index_select(0, row_t)
         rgb, alpha, _ = rasterize_surfels(means, quats, scales, opac, colors, viewmats, Ks, W, H)
-        img = rgb + (1.0 - alpha) * background
+        img = over_background(rgb, alpha, background)
         loss = (img - observed).abs().flatten(1).mean(dim=1).sum()
         if foreground is not None and w_silhouette > 0:
             sil = (alpha[..., 0] - foreground).abs().flatten(1).mean(dim=1).sum()

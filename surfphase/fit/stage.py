@@ -53,7 +53,7 @@ from surfphase.device import resolve_device
 from surfphase.fit import binding, init, losses, register
 from surfphase.fit.densify import Densify2DGS, NoDensify, append_surfels
 from surfphase.fit.model import HALF_OPACITY_GF, SurfelModel, per_surfel
-from surfphase.io import atomic_path
+from surfphase.io import atomic_path, code_fingerprint, stack_frame_indices
 from surfphase.progress import Progress
 from surfphase.render.shading import monotone_raw
 
@@ -267,11 +267,7 @@ class SessionData:
         from surfphase.fit.outputs import read_anchors
 
         self.anchors = read_anchors(masks_dir / "anchors.csv", self.session)
-        idx = self.meta.get("frame_indices") or self.meta.get("frames")
-        if isinstance(idx, list) and len(idx) >= self.n_frames:
-            self.frame_indices = np.asarray(idx[: self.n_frames], dtype=np.int64)
-        else:
-            self.frame_indices = np.arange(self.n_frames, dtype=np.int64)
+        self.frame_indices = stack_frame_indices(self.meta, self.n_frames, meta_path)
         self.times = self.frame_indices / self.fps
         self.height, self.width = self.stacks[0].shape[1:3]
 
@@ -340,7 +336,7 @@ def make_optimizer(model: SurfelModel, p: dict) -> torch.optim.Adam:
 
 def _render(model: SurfelModel, viewmats, Ks, width, height, backgrounds: torch.Tensor):
     """Render the model over per-view background images (C, H, W, D)."""
-    from surfphase.render import rasterize_surfels
+    from surfphase.render import over_background, rasterize_surfels
 
     rgb, alpha, meta = rasterize_surfels(
         model.means,
@@ -353,7 +349,7 @@ def _render(model: SurfelModel, viewmats, Ks, width, height, backgrounds: torch.
         width,
         height,
     )
-    return rgb + (1.0 - alpha) * backgrounds, alpha, meta
+    return over_background(rgb, alpha, backgrounds), alpha, meta
 
 
 def estimate_backgrounds(data: SessionData, n_frames: int, max_frames: int = 64) -> np.ndarray:
@@ -634,15 +630,13 @@ def _load_checkpoint(ckpt: Path, key: str) -> tuple[dict | None, list[dict]]:
     return None, []
 
 
+#: The sources the fit's results depend on (:func:`surfphase.io.code_fingerprint`).
+CODE_SOURCES = ("fit", "render")
+
+
 def _code_fingerprint() -> str:
     """Hash of the sources the fit's results depend on (fit and renderer packages)."""
-    root = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for pkg in ("fit", "render"):
-        for f in sorted((root / pkg).rglob("*.py")):
-            h.update(f.name.encode())
-            h.update(f.read_bytes())
-    return h.hexdigest()
+    return code_fingerprint(CODE_SOURCES)
 
 
 def _run_key(data: SessionData, p: dict) -> str:

@@ -209,17 +209,15 @@ def silhouette_distance(
     return out.reshape(shape)
 
 
+#: The sources a frame's mesh depends on (:func:`surfphase.io.code_fingerprint`).
+CODE_SOURCES = ("cameras.py", "mesh", "render")
+
+
 def _code_fingerprint() -> str:
     """Hash of the sources a frame's mesh depends on (mesh and renderer, cameras)."""
-    root = Path(__file__).resolve().parents[1]
-    files = [root / "cameras.py"]
-    for pkg in ("mesh", "render"):
-        files += sorted((root / pkg).rglob("*.py"))
-    h = hashlib.sha256()
-    for f in files:
-        h.update(f.name.encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()
+    from surfphase.io import code_fingerprint
+
+    return code_fingerprint(CODE_SOURCES)
 
 
 def _file_hash(path: Path) -> str:

@@ -34,6 +34,7 @@ import torch
 from torch import Tensor
 
 from surfphase.cameras import Camera
+from surfphase.render.composite import over_background
 from surfphase.render.projection import DEFAULT_LOW_PASS
 
 #: Backend name → ``"module:function"`` (imported on first use).
@@ -181,7 +182,7 @@ def finish_outputs(
     if backgrounds is not None:
         bg = backgrounds.to(colors)
         bg = bg.expand(accum.shape[0], D) if bg.dim() == 1 else bg
-        colors = colors + (1 - alphas) * bg[:, None, None, :]
+        colors = over_background(colors, alphas, bg[:, None, None, :])
     has = alphas > 0
     depth_expected = torch.where(has, depth_accum / torch.where(has, alphas, 1), 0)
     R = viewmats[:, :3, :3]

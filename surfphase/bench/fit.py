@@ -7,7 +7,8 @@ clips=0)``: 2 input views, 24 frames at 1500 fps), ingests it at the fit scale (
 fits it with and without bubble guidance. Reports input-view PSNR, held-out ``mid``
 view PSNR, the bubble velocity error against the ground truth and timings.
 
-Only this benchmark imports :mod:`surfphase.synth`; the fit stage never does.
+This benchmark imports :mod:`surfphase.synth` for its ground truth; the fit stage
+(:mod:`surfphase.fit`) never does.
 """
 
 from __future__ import annotations
