@@ -261,3 +261,25 @@ def test_mask_stage_centres_at_native_resolution(tmp_path):
     # second order); the native masks get closer than the fit-size ones.
     assert errors["m_native"] < 0.03, errors
     assert errors["m_native"] < errors["m_coarse"], errors
+
+
+def test_border_ids_are_the_regions_the_frame_may_cut():
+    from surfphase.masks.anchors import border_ids
+
+    lab = np.full((20, 30), -1)
+    lab[0:4, 10:14] = 1  # touches the top
+    lab[8:12, 8:12] = 2  # inside
+    lab[15:19, 28:30] = 3  # touches the right
+    lab[19, 0] = 0  # the nucleation region in a corner
+    assert border_ids(lab) == {0, 1, 3}
+    assert border_ids(lab, margin_px=9) == {0, 1, 2, 3}
+
+
+def test_anchored_table_drops_runs_shorter_than_min_track_frames():
+    anchors = pd.DataFrame(
+        [(f, 1, 0.0, 0.001 * f, 0.0) for f in (0, 1, 2, 3, 6, 7, 9)],
+        columns=["frame", "bubble", "x", "y", "z"],
+    )
+    out = anchored_table(_surfel_table(np.arange(10), [1]), anchors, set(), 0.0, 1, 3)
+    assert list(out["frame"]) == [0, 1, 2, 3]  # runs 6-7 and 9 are too short
+    assert len(anchored_table(_surfel_table(np.arange(10), [1]), anchors, set(), 0.0, 1)) == 7

@@ -317,7 +317,9 @@ def smoothed_table(base: pd.DataFrame, fps: float, window_s: float, order: int) 
     return out
 
 
-def method_track_table(fit_dir: Path, window_s: float, order: int) -> pd.DataFrame:
+def method_track_table(
+    fit_dir: Path, window_s: float, order: int, min_track_frames: int | None = None
+) -> pd.DataFrame:
     """The method's ``bubbles.csv`` as ``fit: track_window_s = window_s`` (and
     ``track_order``) writes it, computed from the same fit's ``surfels.npz`` and, when
     the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
@@ -334,7 +336,11 @@ def method_track_table(fit_dir: Path, window_s: float, order: int) -> pd.DataFra
     frames = np.asarray(arrays["frame"], dtype=np.int64)
     nuc = {int(f) for t, f in enumerate(frames) if any((lab[t] == 0).any() for lab in labels)}
     table = bubble_table(arrays, arrays["time_s"], frames)
-    return anchored_table(table, anchors, nuc, window_s, order)
+    if min_track_frames is None:
+        from surfphase.fit.stage import DEFAULTS
+
+        min_track_frames = int(DEFAULTS["min_track_frames"])
+    return anchored_table(table, anchors, nuc, window_s, order, min_track_frames)
 
 
 def track_consistency(pred: pd.DataFrame) -> float:

@@ -232,11 +232,14 @@ def anchored_table(
     nucleation_frames: set[int],
     track_window_s: float,
     track_order: int,
+    min_track_frames: int = 1,
 ) -> pd.DataFrame:
     """``bubbles.csv`` with each bubble's centre from its triangulated silhouettes.
 
     A bubble (id ≥ 1) is reported in the frames where ``anchors`` has its centre (both
-    input views see it and agree), at that centre; its velocity is the central difference
+    input views see it and agree), at that centre, when those frames make a run of at
+    least ``min_track_frames`` consecutive frames (as particle-tracking codes drop
+    tracks shorter than a few frames: a speck seen once is not a bubble); its velocity is the central difference
     along each run of consecutive frames of the id (one-sided at the run's ends), or with
     ``track_window_s`` > 0 both the centres and the velocities come from the moving
     polynomial of :func:`smooth_tracks` along each run (so they agree). The nucleation
@@ -259,6 +262,8 @@ def anchored_table(
     b = bub["bubble"].to_numpy(np.int64)
     new_run = np.r_[True, (b[1:] != b[:-1]) | (f[1:] != f[:-1] + 1)]
     seg = np.cumsum(new_run)
+    keep = np.bincount(seg)[seg] >= int(min_track_frames)
+    bub, seg = bub[keep].reset_index(drop=True), seg[keep]
     bub[vel] = np.nan
     for s in np.unique(seg):
         rows = np.flatnonzero(seg == s)
@@ -420,6 +425,7 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
             data.nucleation_frames(),
             float(p["track_window_s"]),
             int(p["track_order"]),
+            int(p["min_track_frames"]),
         )
     else:
         table = bubble_table(

@@ -6,7 +6,8 @@ Two views constrain a bubble's centre well (its silhouettes' centroids are its
 centroid's projections, to first order) and its extent along their bisector poorly.
 The fit takes each bubble's position and velocity from these centres
 (:mod:`surfphase.fit.outputs`), and the mask stage drops instance pairs whose centres
-the two views do not agree on (:func:`consistent`).
+the two views do not agree on (``consistent`` of :func:`anchor_table`). A silhouette
+that touches the image border (:func:`border_ids`) gives no centre.
 
 Pixels per docs/conventions.md §4; cameras are the undistorted cameras of the label
 stacks' pixel grid.
@@ -89,6 +90,18 @@ def coverage_centroids(
         vv, uu = np.mgrid[y0:y1, x0:x1]
         out[int(b)] = (float((w * uu).sum() / s), float((w * vv).sum() / s), s)
     return out
+
+
+def border_ids(labels: np.ndarray, margin_px: int = 1) -> set[int]:
+    """Ids (≥ 0) of the regions of an (H, W) label image within ``margin_px`` pixels of
+    the image border: their silhouettes may be cut by the frame, so their centroids are
+    not their centres' projections."""
+    lab = np.asarray(labels)
+    m = int(margin_px)
+    edge = np.concatenate(
+        [lab[:m].ravel(), lab[-m:].ravel(), lab[:, :m].ravel(), lab[:, -m:].ravel()]
+    )
+    return {int(b) for b in np.unique(edge[edge >= 0])}
 
 
 def apparent_size(cam: Camera, X: np.ndarray, area_px: float) -> float:

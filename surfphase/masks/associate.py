@@ -61,12 +61,19 @@ ASSOCIATE_DEFAULTS: dict = {
     "event_overlap_frac": 0.25,
     # Cross-view link: paired in at least this fraction of the common frames.
     "link_frac": 0.3,
-    # A merge is dated back over up to this many frames in which the parents touch in
-    # every view: a young merged bubble is two lobes the segmenter may still cut apart
-    # (about the coalescence time, ~1–2 ms, times the frame rate, minus what the
-    # segmenter already fuses; 1 at 1500 fps for the classical backend).
-    "merge_lobe_frames": 1,
+    # A merge is dated back over up to this many seconds (at least one frame) in which
+    # the parents touch in every view: a young merged bubble is two lobes the segmenter
+    # may still cut apart for about the coalescence time (~1 ms for mm bubbles in water),
+    # however many frames that is. Seconds, so one setting holds across frame rates.
+    "merge_lobe_s": 0.001,
 }
+
+
+def lobe_frames(merge_lobe_s: float, fps: float | None) -> int:
+    """Frames of ``merge_lobe_s`` seconds at ``fps`` (rounded, at least 1; 1 without fps)."""
+    if fps is None or not fps > 0:
+        return 1
+    return max(1, int(round(float(merge_lobe_s) * float(fps))))
 
 INSTANCE_COLUMNS = [
     "frame", "camera", "local", "area", "cx", "cy", "x0", "y0", "x1", "y1", "score",
@@ -417,6 +424,7 @@ def reconcile_merges(
     cam_a: str,
     cam_b: str,
     params: Mapping,
+    fps: float | None = None,
 ) -> dict[str, Tracks]:
     """Make each merge one decision for both views, dated at the same frame.
 
@@ -438,7 +446,8 @@ def reconcile_merges(
     * a merge refuted by the other view — a parent's partner there is still seen
       apart two frames after it — is an occlusion in this view: it is undone, the
       blob keeps the id of the track it continues;
-    * the merge is then dated back over up to ``merge_lobe_frames`` frames in which
+    * the merge is then dated back over up to ``merge_lobe_s`` seconds
+      (:func:`lobe_frames` at ``fps``) of frames in which
       the parents' silhouettes touch in every view and are cut apart in at least
       one: the two lobes of a bubble that already merged.
 
@@ -449,7 +458,8 @@ def reconcile_merges(
         tracks: ``{camera: Tracks}`` of :func:`track_view` for ``cam_a`` and ``cam_b``.
         labels: ``{camera: (T, H, W) int}`` instance labels (−1 background).
         pairs: :func:`pair_views` table of ``cam_a`` and ``cam_b``.
-        params: :data:`ASSOCIATE_DEFAULTS` keys ``coast_frames``, ``merge_lobe_frames``.
+        params: :data:`ASSOCIATE_DEFAULTS` keys ``coast_frames``, ``merge_lobe_s``.
+        fps: the session's frame rate (frames per second), for ``merge_lobe_s``.
 
     Returns:
         New ``{camera: Tracks}`` for the two views (the inputs are not modified).
@@ -462,7 +472,7 @@ def reconcile_merges(
     }
     other_view = {cam_a: cam_b, cam_b: cam_a}
     coast = int(params["coast_frames"])
-    lobe = int(params["merge_lobe_frames"])
+    lobe = lobe_frames(params["merge_lobe_s"], fps)
     pair_rows = list(pairs[["frame", "local_a", "local_b"]].itertuples(index=False))
     done: set[tuple[str, int]] = set()
     for _ in range(sum(len(t.events) for t in tr.values()) + 1):
@@ -635,6 +645,7 @@ def associate(
     cameras: Mapping[str, Camera] | None,
     params: Mapping | None = None,
     plates: Mapping[str, np.ndarray] | None = None,
+    fps: float | None = None,
 ) -> tuple[dict[str, np.ndarray], pd.DataFrame, pd.DataFrame]:
     """Give every instance a bubble id, consistent across views and time.
 
@@ -648,6 +659,8 @@ def associate(
         plates: optional ``{camera: (H, W) bool}`` image of the heated plate (the
             static structure of :func:`surfphase.masks.classical.static_background`),
             used for instances that cannot be triangulated.
+        fps: the session's frame rate (frames per second), for time settings such as
+            ``merge_lobe_s`` (without it they count one frame).
 
     Returns:
         bubble_labels: ``{camera: (T, H, W) int32}``, −1 background, 0 nucleation
@@ -676,7 +689,7 @@ def associate(
         att = {(t, loc) for (cc, t, loc) in attached if cc == c}
         tracks[c] = track_view(labels[c], inst[inst.camera == c], att, p)
     if len(names) >= 2:
-        tracks.update(reconcile_merges(tracks, labels, pairs, names[0], names[1], p))
+        tracks.update(reconcile_merges(tracks, labels, pairs, names[0], names[1], p, fps))
     # Global track keys: (camera, track).
     parent = {}
 

@@ -261,7 +261,8 @@ def frame_anchors(
     params: Mapping,
 ) -> pd.DataFrame:
     """The triangulated centres (:func:`surfphase.masks.anchors.anchor_table`) of the
-    first two views' bubbles, from their sub-pixel silhouette centroids."""
+    first two views' bubbles, from their sub-pixel silhouette centroids; a bubble whose
+    silhouette touches a view's border has none in that frame."""
     names = list(stacks)[:2]
     cp, ap = params["classical"], params["anchors"]
     cents = []
@@ -269,7 +270,9 @@ def frame_anchors(
         per = []
         for t in range(stacks[c].shape[0]):
             con = classical.relative_contrast(stacks[c][t], cp, backgrounds[c])
-            per.append(anchors.coverage_centroids(con, labels[c][t], int(ap["ring_px"])))
+            cen = anchors.coverage_centroids(con, labels[c][t], int(ap["ring_px"]))
+            cut = anchors.border_ids(labels[c][t])  # silhouettes the frame may cut
+            per.append({b: v for b, v in cen.items() if b not in cut})
         cents.append(per)
     return anchors.anchor_table([cameras[c].undistorted() for c in names], cents, frames, ap)
 
@@ -328,7 +331,10 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
         labels[name], scores[name], bgs[name] = segment_stack(st, p, backend)
     plates = {name: bg[1] for name, bg in bgs.items()}
     t_seg = time.perf_counter() - t0
-    bubble_labels, instances, events = associate(labels, scores, cameras, p["associate"], plates)
+    fps = float(meta["fps"]) if meta.get("fps") else None
+    bubble_labels, instances, events = associate(
+        labels, scores, cameras, p["associate"], plates, fps
+    )
     check_bubbles_found(meta, ingest_dir, instances, list(stacks))
     frames = np.asarray(meta.get("frame_indices") or range(len(next(iter(stacks.values())))))
     anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "position"])
