@@ -195,7 +195,11 @@ def static_background(
     h, w = ref.shape
     light = estimate_background(ref, int(p["background_degree"]))
     static = np.zeros((h, w), bool)
-    dark = ref < (1.0 - p["static_dark_frac"]) * light
+    # Under a large dark structure the backlight is not seen and its polynomial is an
+    # extrapolation, which can fall to zero or below there (then nothing is darker than
+    # it): the test uses the backlight clamped to half its median.
+    floor = 0.5 * float(np.median(light))
+    dark = ref < (1.0 - p["static_dark_frac"]) * np.maximum(light, floor)
     comp, n = ndi.label(dark)
     if n == 0:
         return light, static
