@@ -144,7 +144,7 @@ DEFAULTS: dict = {
     # it and agree; False: the centroid of its surfels, in every frame it has surfels.
     "anchor_centres": True,
     "min_track_frames": 3,  # ... in runs of at least this many consecutive frames
-    "track_window_s": 0.002,  # > 0: centroids and velocities of each bubble track from a
+    "track_window_s": 0.003,  # > 0: centroids and velocities of each bubble track from a
     # moving polynomial over this many seconds (Savitzky-Golay; 0: per-frame values)
     "track_order": 1,  # polynomial order of that fit
     # Two views leave a bubble's extent along their bisector (the mean viewing direction)
