@@ -35,6 +35,6 @@ def test_plate_found_at_native_and_fit_resolution(plate_session):
         labels, _ = classical.segment_frame(stack[0], None, (bg, static))
         ids, counts = np.unique(labels[labels >= 0], return_counts=True)
         # The biggest instance is a bubble (under 2 % of the frame), not the plate.
-        assert counts.max() < 0.02 * labels.size, dict(zip(ids, counts))
+        assert counts.max() < 0.02 * labels.size, dict(zip(ids, counts, strict=True))
     # The plate fills about the bottom third in both, whatever the resolution.
     assert 0.2 < fracs[0] < 0.45 and abs(fracs[0] - fracs[1]) < 0.03, fracs

@@ -75,6 +75,7 @@ def lobe_frames(merge_lobe_s: float, fps: float | None) -> int:
         return 1
     return max(1, int(round(float(merge_lobe_s) * float(fps))))
 
+
 INSTANCE_COLUMNS = [
     "frame", "camera", "local", "area", "cx", "cy", "x0", "y0", "x1", "y1", "score",
     "top_u", "top_v", "bot_u", "bot_v",
