@@ -283,3 +283,7 @@ def test_anchored_table_drops_runs_shorter_than_min_track_frames():
     out = anchored_table(_surfel_table(np.arange(10), [1]), anchors, set(), 0.0, 1, 3)
     assert list(out["frame"]) == [0, 1, 2, 3]  # runs 6-7 and 9 are too short
     assert len(anchored_table(_surfel_table(np.arange(10), [1]), anchors, set(), 0.0, 1)) == 7
+    # A session shorter than min_track_frames keeps the runs that span all of it.
+    two = anchors[anchors["frame"] <= 1]
+    out = anchored_table(_surfel_table(np.arange(2), [1]), two, set(), 0.0, 1, 3, n_frames=2)
+    assert list(out["frame"]) == [0, 1]

@@ -340,7 +340,7 @@ def method_track_table(
         from surfphase.fit.stage import DEFAULTS
 
         min_track_frames = int(DEFAULTS["min_track_frames"])
-    return anchored_table(table, anchors, nuc, window_s, order, min_track_frames)
+    return anchored_table(table, anchors, nuc, window_s, order, min_track_frames, len(frames))
 
 
 def track_consistency(pred: pd.DataFrame) -> float:

@@ -233,13 +233,15 @@ def anchored_table(
     track_window_s: float,
     track_order: int,
     min_track_frames: int = 1,
+    n_frames: int | None = None,
 ) -> pd.DataFrame:
     """``bubbles.csv`` with each bubble's centre from its triangulated silhouettes.
 
     A bubble (id ≥ 1) is reported in the frames where ``anchors`` has its centre (both
     input views see it and agree), at that centre, when those frames make a run of at
     least ``min_track_frames`` consecutive frames (as particle-tracking codes drop
-    tracks shorter than a few frames: a speck seen once is not a bubble); its velocity is the central difference
+    tracks shorter than a few frames: a speck seen once is not a bubble; a session of
+    ``n_frames`` < ``min_track_frames`` frames needs runs of all its frames); its velocity is the central difference
     along each run of consecutive frames of the id (one-sided at the run's ends), or with
     ``track_window_s`` > 0 both the centres and the velocities come from the moving
     polynomial of :func:`smooth_tracks` along each run (so they agree). The nucleation
@@ -262,7 +264,8 @@ def anchored_table(
     b = bub["bubble"].to_numpy(np.int64)
     new_run = np.r_[True, (b[1:] != b[:-1]) | (f[1:] != f[:-1] + 1)]
     seg = np.cumsum(new_run)
-    keep = np.bincount(seg)[seg] >= int(min_track_frames)
+    need = int(min_track_frames) if n_frames is None else min(int(min_track_frames), n_frames)
+    keep = np.bincount(seg)[seg] >= need
     bub, seg = bub[keep].reset_index(drop=True), seg[keep]
     bub[vel] = np.nan
     for s in np.unique(seg):
@@ -426,6 +429,7 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
             float(p["track_window_s"]),
             int(p["track_order"]),
             int(p["min_track_frames"]),
+            F,
         )
     else:
         table = bubble_table(
