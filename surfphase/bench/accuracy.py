@@ -325,7 +325,13 @@ def method_track_table(
     the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
     (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
     the table is a function of these)."""
-    from surfphase.fit.outputs import anchored_table, bubble_table, load_surfels, read_anchors
+    from surfphase.fit.outputs import (
+        anchored_table,
+        bubble_table,
+        load_surfels,
+        nucleation_frames,
+        read_anchors,
+    )
 
     arrays = load_surfels(fit_dir / "surfels.npz")
     masks = Path(fit_dir).parent / "masks"
@@ -334,7 +340,7 @@ def method_track_table(
         return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order)
     labels = [np.load(p, mmap_mode="r") for p in sorted(masks.glob("*_labels.npy"))]
     frames = np.asarray(arrays["frame"], dtype=np.int64)
-    nuc = {int(f) for t, f in enumerate(frames) if any((lab[t] == 0).any() for lab in labels)}
+    nuc = nucleation_frames(labels, frames)
     table = bubble_table(arrays, arrays["time_s"], frames)
     if min_track_frames is None:
         from surfphase.fit.stage import DEFAULTS

@@ -226,6 +226,16 @@ def read_anchors(path: Path, session: str) -> pd.DataFrame | None:
     return tab
 
 
+def nucleation_frames(label_stacks: Sequence[np.ndarray], frames: np.ndarray) -> set[int]:
+    """Session frame indices (``frames``, one per stack position) where some view's
+    (T, H, W) label stack shows the nucleation region (id 0)."""
+    return {
+        int(f)
+        for t, f in enumerate(frames)
+        if any(bool((np.asarray(lab[t]) == 0).any()) for lab in label_stacks)
+    }
+
+
 def anchored_table(
     table: pd.DataFrame,
     anchors: pd.DataFrame,

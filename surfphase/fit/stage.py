@@ -301,11 +301,9 @@ class SessionData:
 
     def nucleation_frames(self) -> set[int]:
         """Session frame indices where some view's masks show the nucleation region."""
-        return {
-            int(self.frame_indices[t])
-            for t in range(self.n_frames)
-            if any(bool((np.asarray(s[t]) == 0).any()) for s in self.label_stacks)
-        }
+        from surfphase.fit.outputs import nucleation_frames
+
+        return nucleation_frames(self.label_stacks, self.frame_indices[: self.n_frames])
 
     def fingerprint(self) -> str:
         h = hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode())

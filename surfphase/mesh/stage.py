@@ -290,7 +290,7 @@ def _open_session(
             raise ValueError(f"{fit_dir}: frame position {t} outside 0..{n_frames - 1}")
     if "time_s" not in surfels or np.shape(surfels["time_s"]) != (n_frames,):
         raise ValueError(f"{surfels_path}: no time_s per frame (seconds), needed for the .pvd")
-    masks = None
+    masks, mask_paths = None, []
     if masks_dir is not None and p["carve_px"] is not None:
         masks = []
         for cam in inputs:
@@ -304,12 +304,10 @@ def _open_session(
                     f"{n_frames} frames of {cam.width}×{cam.height} pixels"
                 )
             masks.append(lab)
+            mask_paths.append(path)
     key = mesh_key(surfels_path, cam_path, p, dev)
-    if masks is not None:
-        h = hashlib.sha256(key.encode())
-        for lab in masks:
-            h.update(np.ascontiguousarray(lab).tobytes())
-        key = h.hexdigest()
+    if mask_paths:  # the carve depends on the masks' content too
+        key = hashlib.sha256("".join([key, *map(_file_hash, mask_paths)]).encode()).hexdigest()
     return _Session(surfels, inputs, session, p, dev, key, picks, masks)
 
 
