@@ -127,39 +127,33 @@ def test_full_run_produces_every_stage(full_run: Path):
     assert "session01" in (work / "results/campaign/index.html").read_text()
 
 
-@pytest.mark.parametrize("problem", ["missing_video", "unknown_rig", "frame_counts"])
-def test_bad_session_stops_that_session_only(tiny: Path, tmp_path: Path, problem: str):
+def add_session_copies(sheet: Path, source: str, names: list[str]) -> None:
+    """Append rows to ``sheet`` that copy ``source``'s row under new session ids."""
+    head, *rows = sheet.read_text().splitlines()
+    row = next(r for r in rows if r.split("\t")[0] == source)
+    extra = ["\t".join([n, *row.split("\t")[1:]]) for n in names]
+    sheet.write_text("\n".join([head, *rows, *extra]) + "\n")
+
+
+def test_bad_sessions_stop_only_themselves(tiny: Path, tmp_path: Path):
+    """Four sessions, each with its own fault, beside a healthy one, in one run: each
+    bad session's log names the session and the file at fault; session01 finishes.
+
+    session02: a missing video folder; session03: a rig the rigs sheet lacks;
+    session04: cam1 two frames short; session05: its rig's calibration has too few
+    images (the calibrate job fails, naming the rig and the folder)."""
     work = make_workdir(tmp_path, tiny)
     sheet = work / "config" / "sessions.tsv"
-    if problem == "missing_video":
-        bad = str(tmp_path / "nowhere" / "cam1")
-        edit_sheet(sheet, "session02", "cam1", bad)
-        expect = [bad]
-    elif problem == "unknown_rig":
-        edit_sheet(sheet, "session02", "rig", "rig99")
-        expect = ["rig99", "rigs.tsv"]
-    else:
-        # cam1 of session02 loses two frames: a copy of its folder without the last two.
-        src = Path(sheet_value(sheet, "session02", "cam1"))
-        short = tmp_path / "short_cam1"
-        shutil.copytree(src, short)
-        for f in sorted(short.iterdir())[-2:]:
-            f.unlink()
-        edit_sheet(sheet, "session02", "cam1", str(short))
-        expect = [str(short)]
-    r = snakemake(work, "--keep-going", *INGEST_TARGETS)
-    assert r.returncode != 0
-    log = (work / "logs/ingest/session02.log").read_text()
-    assert "session02" in log
-    for e in expect:
-        assert e in log, log
-    # The other session finished.
-    assert (work / "results/session01/ingest/meta.json").exists()
-    assert not (work / "results/session02/ingest").exists()
-
-
-def test_too_few_calibration_images_names_rig_and_folder(tiny: Path, tmp_path: Path):
-    work = make_workdir(tmp_path, tiny)
+    add_session_copies(sheet, "session02", ["session03", "session04", "session05"])
+    bad = str(tmp_path / "nowhere" / "cam1")
+    edit_sheet(sheet, "session02", "cam1", bad)
+    edit_sheet(sheet, "session03", "rig", "rig99")
+    src = Path(sheet_value(sheet, "session04", "cam1"))
+    short = tmp_path / "short_cam1"
+    shutil.copytree(src, short)
+    for f in sorted(short.iterdir())[-2:]:
+        f.unlink()
+    edit_sheet(sheet, "session04", "cam1", str(short))
     rigs = work / "config" / "rigs.tsv"
     lines = rigs.read_text().splitlines()
     cols = lines[0].split("\t")
@@ -172,11 +166,24 @@ def test_too_few_calibration_images_names_rig_and_folder(tiny: Path, tmp_path: P
     row2[0] = "rig02"
     row2[cols.index("cam1")] = str(few)
     rigs.write_text("\n".join([*lines, "\t".join(row2)]) + "\n")
-    edit_sheet(work / "config" / "sessions.tsv", "session02", "rig", "rig02")
-    r = snakemake(work, "--keep-going", *INGEST_TARGETS)
+    edit_sheet(sheet, "session05", "rig", "rig02")
+    sessions = ["session01", "session02", "session03", "session04", "session05"]
+    r = snakemake(work, "--keep-going", *[f"results/{s}/ingest" for s in sessions])
     assert r.returncode != 0
+    for s, expect in [
+        ("session02", [bad]),
+        ("session03", ["rig99", "rigs.tsv"]),
+        ("session04", [str(short)]),
+    ]:
+        log = (work / f"logs/ingest/{s}.log").read_text()
+        assert s in log
+        for e in expect:
+            assert e in log, log
+        assert not (work / f"results/{s}/ingest").exists()
     log = (work / "logs/calibrate/rig02.log").read_text()
     assert "rig02" in log and str(few) in log, log
+    assert not (work / "results/session05/ingest").exists()
+    # The healthy session finished.
     assert (work / "results/session01/ingest/meta.json").exists()
 
 

@@ -86,30 +86,38 @@ def edit_cell(sheet: Path, session: str, column: str, value: str) -> None:
     sheet.write_text("\n".join([lines[0], *("\t".join(r) for r in rows)]) + "\n")
 
 
-@pytest.mark.parametrize(
-    ("column", "value", "why"),
-    [
-        ("fps", "fast", "is not a number"),
-        ("fps", "0", "must be greater than 0"),
-        ("fps", "-5", "must be greater than 0"),
-        ("frames", "1-5", "does not match"),
-    ],
-)
-def test_bad_cell_fails_only_that_session(campaign: Path, column: str, value: str, why: str):
+#: One bad cell per extra session: (column, value, why the log gives).
+BAD_CELLS = {
+    "session02": ("fps", "fast", "is not a number"),
+    "session03": ("fps", "0", "must be greater than 0"),
+    "session04": ("fps", "-5", "must be greater than 0"),
+    "session05": ("frames", "1-5", "does not match"),
+}
+
+
+def test_bad_cell_fails_only_that_session(campaign: Path):
     """A bad cell of one row is that session's problem: the DAG builds, the other
-    sessions are planned as usual, and the bad session's one job fails, naming the
-    sheet, the session, the column and the value (the full run is in test_workflow_run)."""
+    sessions are planned as usual, and each bad session's one job fails, naming the
+    sheet, the session, the column and the value (the full run is in test_workflow_run).
+    Four bad sessions (copies of session02, one bad cell each) share one campaign."""
     sheet = campaign / "config" / "sessions.tsv"
-    edit_cell(sheet, "session02", column, value)
+    head, *rows = sheet.read_text().splitlines()
+    template = next(r for r in rows if r.split("\t")[0] == "session02")
+    extra = [template.replace("session02", s, 1) for s in BAD_CELLS if s != "session02"]
+    sheet.write_text("\n".join([head, *rows, *extra]) + "\n")
+    for session, (column, value, _) in BAD_CELLS.items():
+        edit_cell(sheet, session, column, value)
     r = snakemake(campaign, "-n")
     assert r.returncode == 0, r.stdout + r.stderr
     counts = {x.split()[0]: x.split()[1] for x in r.stdout.splitlines() if len(x.split()) == 2}
-    assert counts["session_sheet"] == "1" and counts["ingest"] == "2"
-    r = snakemake(campaign, "results/session02/sheet_row.ok")
+    assert counts["session_sheet"] == str(len(BAD_CELLS)) and counts["ingest"] == "5"
+    targets = [f"results/{s}/sheet_row.ok" for s in BAD_CELLS]
+    r = snakemake(campaign, "--keep-going", *targets)
     assert r.returncode != 0
-    log = (campaign / "logs/session_sheet/session02.log").read_text()
-    assert "config/sessions.tsv" in log and "session02" in log and "session01" not in log
-    assert f"column '{column}': '{value}' {why}" in log, log
+    for session, (column, value, why) in BAD_CELLS.items():
+        log = (campaign / f"logs/session_sheet/{session}.log").read_text()
+        assert "config/sessions.tsv" in log and session in log and "session01" not in log
+        assert f"column '{column}': '{value}' {why}" in log, log
 
 
 def test_bad_session_id_refuses_the_sheet_in_one_line(campaign: Path):

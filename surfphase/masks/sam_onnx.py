@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from surfphase.masks import amg
+from surfphase.masks.amg import SAM_DEFAULTS
 from surfphase.masks.classical import to_unit_float
 
 #: SAM's input side and its RGB normalisation (pixel values 0..255).
@@ -51,19 +52,6 @@ DECODER_INPUTS = (
     "has_mask_input",
     "orig_im_size",
 )
-
-#: Automatic-mask-generation parameters (config.yaml ``masks.sam``).
-SAM_DEFAULTS: dict = {
-    "encoder": "resources/sam/sam_encoder.onnx",
-    "decoder": "resources/sam/sam_decoder.onnx",
-    "points_per_side": 32,
-    "points_per_batch": 64,
-    "pred_iou_thresh": 0.88,
-    "stability_score_thresh": 0.95,
-    "stability_score_offset": 1.0,
-    "box_nms_thresh": 0.7,
-    "min_region_area": 0,
-}
 
 _HOW_TO_EXPORT = (
     "export the model with segment-anything's scripts/export_onnx_model.py "

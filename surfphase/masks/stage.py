@@ -46,9 +46,9 @@ import pandas as pd
 from surfphase.cameras import load_cameras
 from surfphase.io import atomic_write_json, atomic_write_text, load_stack, save_npy
 from surfphase.masks import anchors, classical
+from surfphase.masks.amg import SAM_DEFAULTS
 from surfphase.masks.associate import ASSOCIATE_DEFAULTS, associate
 from surfphase.masks.overlay import overlay_frame, save_png
-from surfphase.masks.sam_onnx import SAM_DEFAULTS, load_sam
 
 #: Parameters of the stage (config.yaml ``masks:``); nested sections are merged key by key.
 DEFAULTS: dict = {
@@ -324,7 +324,12 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
         seg_dir = ingest_dir / str(native)
         _, cameras, stacks = read_ingest(seg_dir)
     blank_notes = check_dynamic_range(meta, seg_dir, stacks, float(p["min_dynamic_range"]))
-    backend = load_sam(p["sam"]) if p["backend"] == "sam" else None
+    backend = None
+    if p["backend"] == "sam":
+        # Imported here: ONNX Runtime and torch cost a classical run 1–2 s to load.
+        from surfphase.masks.sam_onnx import load_sam
+
+        backend = load_sam(p["sam"])
     t0 = time.perf_counter()
     labels, scores, bgs = {}, {}, {}
     for name, st in stacks.items():
