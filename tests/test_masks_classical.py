@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -130,3 +131,74 @@ def test_bubble_growing_on_the_plate_is_whole():
         assert labels.max() + 1 == 2
         assert best_iou(truths[t], labels, 0) > 0.8
         assert best_iou(truths[t], labels, 1) > 0.9
+
+
+def _rising_stack(n: int, noise: float, sites=()) -> np.ndarray:
+    """(n, 128, 128) frames over a plate (rows ≥ 96): one bubble rising, plus ``sites``
+    (u, v, r) that stay put in every frame."""
+    frames = []
+    for t in range(n):
+        img, _ = shadowgraph(
+            128, 128, [(90, 70 - 3 * t, 8), *sites], seed=t, noise=noise, plate_row=96
+        )
+        frames.append(img)
+    return np.stack(frames)
+
+
+def test_contrast_noise_is_the_drawn_noise():
+    """Frames with Gaussian noise σ = 0.01: the smoothed contrast's noise is σ over the
+    background times the Gaussian kernel's noise gain √Σk² per axis (cv2's own kernel),
+    above the plate and, 1/0.26 times larger, on its dim face."""
+    sigma = 0.01
+    stack = _rising_stack(16, sigma)
+    ref = classical.session_reference(stack)
+    bg, static = classical.static_background(ref)
+    est = classical.contrast_noise(stack, None, (bg, static))
+    k = cv2.getGaussianKernel(7, classical.CLASSICAL_DEFAULTS["smooth_px"])[:, 0]
+    gain = float((k**2).sum())  # 2D separable: (√Σk²)² = Σk²
+    truth = sigma / np.maximum(bg, 1e-3) * gain
+    free = ~static
+    free[:, 80:100] = False  # the rising bubble's path
+    on_plate = static.copy()
+    on_plate[:100] = False
+    on_plate[118:] = False  # the black band, where nothing is seen
+    for region in (free, on_plate):
+        ratio = np.median(est[region] / truth[region])
+        assert 0.85 < ratio < 1.15, ratio
+
+
+def test_noise_raises_the_thresholds_where_the_plate_is_dim():
+    """On a noisy dim plate the fixed thresholds segment noise; thresholds raised to the
+    measured noise find no object away from the two bubbles (one rising, one sitting in
+    front of the plate's face in every frame, which the plate's background must not
+    absorb), and find both in every frame."""
+    from scipy import ndimage as ndi
+
+    stack = _rising_stack(12, 0.02, sites=[(40.0, 108.0, 7.0)])
+    ref = classical.session_reference(stack)
+    plate = classical.session_reference(stack, 50.0)
+    bgs = classical.static_background(ref, None, plate)
+    noise = classical.contrast_noise(stack, None, bgs)
+    # The sitting bubble is in every frame's plate reference; its background is the plate.
+    yy, xx = np.mgrid[0:128, 0:128].astype(np.float64)
+    light = 0.75 + 0.15 * xx / 128 - 0.1 * yy / 128
+    light -= 0.15 * ((xx - 64) ** 2 + (yy - 64) ** 2) / (2 * 64**2)
+    disc = np.hypot(xx - 40, yy - 108) < 8
+    err = np.abs(bgs[0][disc] / (0.26 * light[disc]) - 1)
+    assert np.percentile(err, 95) < 0.15, np.percentile(err, 95)
+
+    def away(labels, t):
+        """Instances whose centroid is more than 3 px outside both bubbles."""
+        true = [(70 - 3 * t, 90, 8), (108, 40, 7)]
+        n = 0
+        for i in range(labels.max() + 1):
+            cy, cx = ndi.center_of_mass(labels == i)
+            n += min(np.hypot(cy - v, cx - u) - r for v, u, r in true) > 3
+        return n
+
+    fixed = sum(away(classical.segment_frame(f, None, bgs)[0], t) for t, f in enumerate(stack))
+    assert fixed > 0  # noise specks with the fixed thresholds
+    for t, f in enumerate(stack):
+        labels = classical.segment_frame(f, None, bgs, noise)[0]
+        assert away(labels, t) == 0
+        assert labels[70 - 3 * t, 90] >= 0 and labels[108, 40] >= 0

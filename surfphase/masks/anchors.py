@@ -35,6 +35,11 @@ ANCHOR_DEFAULTS: dict = {
     # ... and the sizes its two silhouettes give at that centre (equivalent radius ×
     # distance / focal length) differ by at most this factor.
     "max_size_ratio": 1.3,
+    # A bubble whose triangulated centre moves slower than this (m/s; the least-squares
+    # speed over its frames, at least 3) is a static feature of the scene (a speck on
+    # the plate or the window), not a free bubble: buoyancy lifts a free bubble of 0.1 mm
+    # diameter in water at about 5 mm/s, larger ones faster. 0 keeps them all.
+    "min_speed_mps": 0.005,
 }
 
 ANCHOR_COLUMNS = ["frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "consistent"]
@@ -150,6 +155,31 @@ def anchor_table(
             ok = rep <= float(p["max_reproj_px"]) and ratio <= float(p["max_size_ratio"])
             rows.append((int(f), int(bid), *map(float, X), rep, ratio, bool(ok)))
     return pd.DataFrame(rows, columns=ANCHOR_COLUMNS)
+
+
+def track_speeds(table: pd.DataFrame, fps: float, min_frames: int = 3) -> dict[int, float]:
+    """Least-squares speed (m/s) of each bubble's centre over its frames.
+
+    Args:
+        table: ``frame, bubble, x, y, z`` (m) centres (:func:`anchor_table`'s consistent
+            rows), any frames.
+        fps: frame rate (frames per second) of the session's frame indices.
+        min_frames: bubbles with fewer frames get no speed (too few to tell).
+
+    Returns:
+        ``{bubble: |slope|}`` of the straight line fitted to the centre against time
+        (s), for bubbles ≥ 1 with at least ``min_frames`` frames.
+    """
+    out: dict[int, float] = {}
+    for b, g in table.groupby("bubble"):
+        if int(b) < 1 or len(g) < int(min_frames):
+            continue
+        t = g["frame"].to_numpy(np.float64) / float(fps)
+        X = g[["x", "y", "z"]].to_numpy(np.float64)
+        tc = t - t.mean()
+        slope = (tc[:, None] * (X - X.mean(axis=0))).sum(axis=0) / float((tc**2).sum())
+        out[int(b)] = float(np.linalg.norm(slope))
+    return out
 
 
 def downsample_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -48,8 +48,9 @@ from surfphase.cameras import Camera, triangulate
 ASSOCIATE_DEFAULTS: dict = {
     # Gate of the cross-view pair cost, fraction of the image height.
     "view_gate_frac": 0.04,
-    # An attached bubble's silhouette bottom is within this height of the plate, metres.
-    "nucleation_height": 2.5e-4,
+    # An attached bubble's silhouette bottom is within this height of the plate, metres
+    # (about two pixels of a typical recording: the bottom's triangulation error).
+    "nucleation_height": 1.0e-4,
     # Without cameras: attached when the bottom is within this many rows (fraction of
     # the height) of the lowest silhouette bottom seen in the session.
     "nucleation_margin_frac": 0.02,

@@ -59,6 +59,14 @@ CLASSICAL_DEFAULTS: dict = {
     # Hysteresis thresholds on the relative contrast (background − image) / background.
     "threshold_low": 0.08,
     "threshold_high": 0.2,
+    # ... and at least this many times the contrast's own noise there (the per-pixel
+    # spread of the smoothed contrast between consecutive frames,
+    # :func:`contrast_noise`): on a dim plate the relative contrast of camera noise is
+    # large, and thresholds meant for the bright backlight would segment it.
+    "noise_low": 3.0,
+    "noise_high": 5.0,
+    # Window (pixels) of the spatial median that steadies the per-pixel noise estimate.
+    "noise_window_px": 9,
     # Edge of each object at this fraction of its own peak contrast (half maximum).
     "edge_frac": 0.5,
     # Peaks of the distance transform closer than this (fraction of shorter side) merge.
@@ -240,12 +248,21 @@ def static_background(
     # The reference is the background, except where it departs strongly from its
     # along-edge median: bubbles that never left the nucleation sites.
     outlier = np.abs(band - med) > p["static_outlier_frac"] * np.maximum(med, 1e-3)
-    # Only departures reaching the edge: bubbles sit *on* the plate, whereas the
-    # plate's own lower features (its black sides) do not follow the edge.
-    out_lab, n_out = ndi.label(outlier)
+    # Only departures reaching the edge, or holding a part brighter than the plate:
+    # bubbles sit *on* the plate, and one seen in front of the plate's top shows a
+    # bright core there, whereas the plate's own lower features (its black sides) are
+    # dark and do not follow the edge.
+    # A bubble's ring and core are separate departures: pieces within 2 px are one.
+    grouped = ndi.binary_dilation(outlier, iterations=2)
+    out_lab, n_out = ndi.label(grouped)
     if n_out:
         touching = np.unique(out_lab[:4][out_lab[:4] > 0])
-        outlier = np.isin(out_lab, touching)
+        bright = band - med > p["static_outlier_frac"] * np.maximum(med, 1e-3)
+        cored = np.unique(out_lab[bright & outlier & (out_lab > 0)])
+        keep = np.isin(out_lab, touching)
+        # A bubble in front of the plate: its whole disc, ring, core and what lies between.
+        keep |= ndi.binary_fill_holes(np.isin(out_lab, cored)) & ~keep
+        outlier = (outlier & np.isin(out_lab, touching)) | (keep & ~np.isin(out_lab, touching))
     outlier = ndi.binary_dilation(outlier, np.ones((3, 3), bool))
     band_bg = np.where(outlier, med, band)
     bg = light.copy()
@@ -277,6 +294,7 @@ def relative_contrast(
     image: np.ndarray,
     params: Mapping | None = None,
     background: tuple[np.ndarray, np.ndarray] | None = None,
+    signed: bool = False,
 ) -> np.ndarray:
     """(H, W) float32 relative darkness ``(background − image) / background`` in [0, 1].
 
@@ -284,6 +302,8 @@ def relative_contrast(
     it the backlight is fitted on this frame alone. A per-frame gain (median ratio
     of image to background off the static structures) follows illumination flicker.
     With ``polarity: bright`` the image is inverted first (bright bubbles on dark).
+    ``signed``: the contrast before folding and clipping (negative where brighter than
+    the background), zero where the background is below ``background_floor``.
     """
     p = {**CLASSICAL_DEFAULTS, **(params or {})}
     img = _polarised(image, p)
@@ -298,6 +318,9 @@ def relative_contrast(
         if free.any():
             bg = bg * float(np.median(img[free] / np.maximum(bg[free], 1e-3)))
     c = (bg - img) / np.maximum(bg, 1e-3)
+    if signed:
+        c[bg < p["background_floor"]] = 0.0
+        return c.astype(np.float32)
     # In front of a static dark structure a bubble shows as a dark ring *and* a core
     # brighter than the structure: any departure from the reference counts there.
     c[static] = np.abs(c[static])
@@ -305,11 +328,72 @@ def relative_contrast(
     return np.clip(c, 0.0, 1.0).astype(np.float32)
 
 
+def smoothed(contrast: np.ndarray, params: Mapping | None = None) -> np.ndarray:
+    """(H, W) float32 contrast smoothed for detection (Gaussian, ``smooth_px``)."""
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    if p["smooth_px"] <= 0:
+        return np.asarray(contrast, np.float32)
+    return cv2.GaussianBlur(contrast, (0, 0), sigmaX=float(p["smooth_px"]))
+
+
+def detection_contrast(
+    signed: np.ndarray, static: np.ndarray | None, params: Mapping | None = None
+) -> np.ndarray:
+    """(H, W) float32 contrast that objects are detected on: the smoothed signed
+    contrast (:func:`relative_contrast` with ``signed``), clipped to [0, 1], and in
+    front of the static structure (``static`` (H, W) bool) its absolute value (a
+    bubble's dark ring and bright core both depart from the plate). Smoothing before
+    folding keeps camera noise, which folds into a positive bias, from adding up."""
+    sm = smoothed(signed, params)
+    out = np.clip(sm, 0.0, 1.0)
+    if static is not None:
+        out[static] = np.clip(np.abs(sm[static]), 0.0, 1.0)
+    return out.astype(np.float32)
+
+
+def contrast_noise(
+    frames: np.ndarray,
+    params: Mapping | None = None,
+    background: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """(H, W) float32 noise (standard deviation) of the smoothed signed contrast.
+
+    Per pixel, the robust spread (1.4826 × median absolute value / √2) of the smoothed
+    signed contrast's change between consecutive frames (at most
+    ``reference_max_frames`` pairs, evenly spaced): a bubble crossing a pixel changes it
+    in a few pairs only, and one that hardly moves changes it little, so the estimate
+    is the camera's noise. A spatial median over ``noise_window_px`` steadies it. Zero
+    for fewer than 2 frames.
+
+    Args:
+        frames: (T, H, W) session frames (any dtype :func:`to_unit_float` takes).
+        params: overrides of :data:`CLASSICAL_DEFAULTS`.
+        background: ``(background, static)`` as for :func:`relative_contrast`.
+    """
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    n = frames.shape[0]
+    if n < 2:
+        return np.zeros(frames.shape[1:3], np.float32)
+    starts = np.unique(np.linspace(0, n - 2, min(n - 1, int(p["reference_max_frames"]))).round())
+
+    def sm(t: int) -> np.ndarray:
+        return smoothed(relative_contrast(frames[t], p, background, signed=True), p)
+
+    diffs = [np.abs(sm(t + 1) - sm(t)) for t in starts.astype(int)]
+    sigma = 1.4826 * np.median(np.stack(diffs), axis=0) / np.sqrt(2.0)
+    win = int(p["noise_window_px"])
+    if win > 1:
+        sigma = ndi.median_filter(sigma, size=win, mode="nearest")
+    return sigma.astype(np.float32)
+
+
 def foreground_mask(
     contrast: np.ndarray,
     params: Mapping | None = None,
     static: np.ndarray | None = None,
     return_cores: bool = False,
+    noise: np.ndarray | None = None,
+    detect: np.ndarray | None = None,
 ):
     """(H, W) bool bubble pixels from the relative contrast.
 
@@ -320,13 +404,24 @@ def foreground_mask(
     structure (``static``, (H, W) bool), where a bubble's contrast against the dim
     plate is lower, ``static_edge`` is the edge instead. Holes (bright cores) are
     filled; with ``return_cores`` the filled holes are returned too, as a second
-    (H, W) bool array: one core per bubble that shows one.
+    (H, W) bool array: one core per bubble that shows one. ``noise`` ((H, W), the
+    detection contrast's standard deviation, :func:`contrast_noise`) raises the two
+    hysteresis thresholds to ``noise_low`` and ``noise_high`` times it where that is
+    higher. ``detect``: the (H, W) image to detect on (:func:`detection_contrast`);
+    default the smoothed ``contrast``.
     """
     p = {**CLASSICAL_DEFAULTS, **(params or {})}
-    sm = contrast
-    if p["smooth_px"] > 0:
-        sm = cv2.GaussianBlur(contrast, (0, 0), sigmaX=float(p["smooth_px"]))
-    det = apply_hysteresis_threshold(sm, p["threshold_low"], p["threshold_high"])
+    sm = smoothed(contrast, p) if detect is None else detect
+    if noise is None:
+        det = apply_hysteresis_threshold(sm, p["threshold_low"], p["threshold_high"])
+    else:
+        low = sm > np.maximum(p["threshold_low"], p["noise_low"] * noise)
+        high = sm > np.maximum(p["threshold_high"], p["noise_high"] * noise)
+        comp_low, n_low = ndi.label(low)
+        seeds = np.zeros(n_low + 1, bool)
+        seeds[np.unique(comp_low[high])] = True
+        seeds[0] = False
+        det = seeds[comp_low]
     det = ndi.binary_fill_holes(det)
     comp, n = ndi.label(det)
     fg = np.zeros_like(det)
@@ -443,6 +538,7 @@ def segment_frame(
     image: np.ndarray,
     params: Mapping | None = None,
     background: tuple[np.ndarray, np.ndarray] | None = None,
+    noise: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Segment the bubbles of one frame.
 
@@ -451,6 +547,8 @@ def segment_frame(
         params: overrides of :data:`CLASSICAL_DEFAULTS`.
         background: ``(background, static)`` of the session
             (:func:`static_background`); fitted on the frame alone when ``None``.
+        noise: (H, W) noise of the smoothed contrast (:func:`contrast_noise`), which
+            raises the detection thresholds; ``None``: the fixed thresholds only.
 
     Returns:
         labels: (H, W) int32, −1 background, 0..n−1 instance index (largest first);
@@ -458,8 +556,17 @@ def segment_frame(
     """
     p = {**CLASSICAL_DEFAULTS, **(params or {})}
     contrast = relative_contrast(image, p, background)
+    detect = None
+    if noise is not None:
+        signed = relative_contrast(image, p, background, signed=True)
+        detect = detection_contrast(signed, None if background is None else background[1], p)
     fg, cores = foreground_mask(
-        contrast, p, None if background is None else background[1], return_cores=True
+        contrast,
+        p,
+        None if background is None else background[1],
+        return_cores=True,
+        noise=noise,
+        detect=detect,
     )
     if background is not None:
         # In front of the plate a bubble's core is not a clean hole in its ring.

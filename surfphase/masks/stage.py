@@ -242,8 +242,9 @@ def segment_stack(
     cp = params["classical"]
     bg = classical.session_background(stack, cp)
     if params["backend"] == "classical":
+        noise = classical.contrast_noise(stack, cp, bg)
         for t in range(t_n):
-            labels[t], s = classical.segment_frame(stack[t], cp, bg)
+            labels[t], s = classical.segment_frame(stack[t], cp, bg, noise)
             scores.append(s)
     else:
         for t in range(t_n):
@@ -290,6 +291,28 @@ def drop_inconsistent(
         sel = (instances["frame"] == int(t)) & (instances["bubble"] == int(b))
         instances.loc[sel, "bubble"] = -1
     return len(bad)
+
+
+def drop_static(
+    labels: dict[str, np.ndarray],
+    instances: pd.DataFrame,
+    table: pd.DataFrame,
+    fps: float,
+    min_speed_mps: float,
+) -> list[int]:
+    """Remove, in place, every bubble whose consistent centres in ``table`` move slower
+    than ``min_speed_mps`` (:func:`surfphase.masks.anchors.track_speeds`) from every
+    view's labels and from ``instances`` (``bubble = -1``); return their ids."""
+    if min_speed_mps <= 0 or not fps:
+        return []
+    ok = table[table["consistent"].astype(bool)]
+    speeds = anchors.track_speeds(ok, fps)
+    static = sorted(b for b, v in speeds.items() if v < min_speed_mps)
+    for b in static:
+        for lab in labels.values():
+            lab[lab == b] = -1
+        instances.loc[instances["bubble"] == b, "bubble"] = -1
+    return static
 
 
 def scaled_instances(instances: pd.DataFrame, sx: float, sy: float) -> pd.DataFrame:
@@ -343,14 +366,19 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
     check_bubbles_found(meta, ingest_dir, instances, list(stacks))
     frames = np.asarray(meta.get("frame_indices") or range(len(next(iter(stacks.values())))))
     anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "position"])
-    dropped = 0
+    dropped, static = 0, []
     if len(stacks) >= 2:
         anchor_tab = frame_anchors(stacks, bubble_labels, bgs, cameras, frames, p)
         pos = {int(f): k for k, f in enumerate(frames)}
         anchor_tab["position"] = [pos[int(f)] for f in anchor_tab["frame"]]
         dropped = drop_inconsistent(bubble_labels, instances, anchor_tab)
+        static = drop_static(
+            bubble_labels, instances, anchor_tab, fps, float(p["anchors"]["min_speed_mps"])
+        )
         instances = instances[instances["bubble"] != -1].reset_index(drop=True)
-        anchor_tab = anchor_tab[anchor_tab["consistent"].astype(bool)]
+        anchor_tab = anchor_tab[
+            anchor_tab["consistent"].astype(bool) & ~anchor_tab["bubble"].isin(static)
+        ]
     if native:
         for name in list(bubble_labels):
             h, w = fit_stacks[name].shape[1:3]
@@ -400,6 +428,7 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
                 "segmented_size": {c: list(st.shape[1:3][::-1]) for c, st in labels.items()},
                 "anchors": len(anchor_tab),
                 "dropped_inconsistent": dropped,
+                "dropped_static": static,
                 "segment_seconds": round(t_seg, 3),
                 "warnings": blank_notes,
             },
