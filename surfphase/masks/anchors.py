@@ -7,7 +7,10 @@ centroid's projections, to first order) and its extent along their bisector poor
 The fit takes each bubble's position and velocity from these centres
 (:mod:`surfphase.fit.outputs`), and the mask stage drops instance pairs whose centres
 the two views do not agree on (``consistent`` of :func:`anchor_table`). A silhouette
-that touches the image border (:func:`border_ids`) gives no centre.
+that touches the image border (:func:`border_ids`) is cut by the frame, so its centroid
+is not its centre's projection: its centre and full area are those of the ellipse fitted
+to its visible outline (:func:`cut_centres`) when enough of it is visible, else it has
+no centre.
 
 Pixels per docs/conventions.md §4; cameras are the undistorted cameras of the label
 stacks' pixel grid.
@@ -21,6 +24,7 @@ import cv2
 import numpy as np
 import pandas as pd
 from scipy import ndimage as ndi
+from skimage.measure import find_contours
 
 from surfphase.cameras import Camera, triangulate
 
@@ -40,13 +44,53 @@ ANCHOR_DEFAULTS: dict = {
     # the plate or the window), not a free bubble: buoyancy lifts a free bubble of 0.1 mm
     # diameter in water at about 5 mm/s, larger ones faster. 0 keeps them all.
     "min_speed_mps": 0.005,
+    # A silhouette the image border cuts gets its centre and full area from the ellipse
+    # fitted to its visible outline (cut_centres) when at least this fraction (0-1) of
+    # the fitted ellipse's area is inside the frame; above 1: never (no centre).
+    "min_visible": 0.6,
 }
 
-ANCHOR_COLUMNS = ["frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "consistent"]
+#: Fewest outline points an outline fit takes (a conic has 5 degrees of freedom).
+_MIN_OUTLINE_POINTS = 8
+
+ANCHOR_COLUMNS = [
+    "frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "cut", "consistent"
+]  # fmt: skip
+
+
+def _crop(mask: np.ndarray, pad: int) -> tuple[slice, slice]:
+    """The (rows, columns) slices of ``mask``'s bounding box grown by ``pad`` pixels,
+    clipped to the image."""
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+    return (
+        slice(max(int(ys.min()) - pad, 0), min(int(ys.max()) + pad + 1, h)),
+        slice(max(int(xs.min()) - pad, 0), min(int(xs.max()) + pad + 1, w)),
+    )
+
+
+def _cover_weights(
+    mask: np.ndarray, contrast: np.ndarray, own: np.ndarray, ring_px: int
+) -> np.ndarray:
+    """Per-pixel cover (0..1) of one region in a crop: 1 inside ``mask`` (bool (h, w)),
+    and on its edge and the band of ``ring_px`` pixels about it (where ``own``, the
+    pixels nearer to this region than to any other) the relative darkness
+    ``contrast`` over the 75th percentile of the mask's edge pixels' darkness, clipped
+    to [0, 1]; the binary mask where ``ring_px`` is 0 or there is no edge contrast."""
+    w = mask.astype(np.float64)
+    if ring_px <= 0:
+        return w
+    inner = ndi.binary_erosion(mask)
+    edge = mask & ~inner
+    band = ndi.binary_dilation(mask, iterations=int(ring_px)) & ~inner & own
+    ref = float(np.percentile(contrast[edge], 75)) if edge.any() else 0.0
+    if ref > 1e-3 and inner.any():
+        w = np.where(inner, 1.0, np.where(band, np.clip(contrast / ref, 0.0, 1.0), 0.0))
+    return w
 
 
 def coverage_centroids(
-    contrast: np.ndarray, labels: np.ndarray, ring_px: int = 2
+    contrast: np.ndarray, labels: np.ndarray, ring_px: int = ANCHOR_DEFAULTS["ring_px"]
 ) -> dict[int, tuple[float, float, float]]:
     """Sub-pixel centroid of every labelled region of one frame.
 
@@ -78,21 +122,10 @@ def coverage_centroids(
         owner = lab[ri, ci]
     for b in ids:
         m = lab == b
-        ys, xs = np.nonzero(m)
-        pad = int(ring_px) + 1
-        y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, lab.shape[0])
-        x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, lab.shape[1])
-        mm, cc, ll = m[y0:y1, x0:x1], c[y0:y1, x0:x1], owner[y0:y1, x0:x1]
-        w = mm.astype(np.float64)
-        if ring_px > 0:
-            inner = ndi.binary_erosion(mm)
-            edge = mm & ~inner
-            band = ndi.binary_dilation(mm, iterations=int(ring_px)) & ~inner & (ll == b)
-            ref = float(np.percentile(cc[edge], 75)) if edge.any() else 0.0
-            if ref > 1e-3 and inner.any():
-                w = np.where(inner, 1.0, np.where(band, np.clip(cc / ref, 0.0, 1.0), 0.0))
+        sl = _crop(m, int(ring_px) + 1)
+        w = _cover_weights(m[sl], c[sl], owner[sl] == b, ring_px)
         s = float(w.sum())
-        vv, uu = np.mgrid[y0:y1, x0:x1]
+        vv, uu = np.mgrid[sl]
         out[int(b)] = (float((w * uu).sum() / s), float((w * vv).sum() / s), s)
     return out
 
@@ -122,25 +155,32 @@ def anchor_table(
     centroids: Sequence[Sequence[Mapping[int, tuple[float, float, float]]]],
     frames: np.ndarray,
     params: Mapping | None = None,
+    cut: Sequence[Sequence[set[int]]] | None = None,
 ) -> pd.DataFrame:
     """Triangulated centre of every bubble (id ≥ 1) that the first two views both see.
 
     Args:
         cameras: the two views' undistorted cameras.
-        centroids: per view, per frame position, :func:`coverage_centroids`' dict.
+        centroids: per view, per frame position, ``{id: (u, v, area)}``: the
+            silhouette's centre (pixels) and area (pixels²), :func:`coverage_centroids`'
+            or, for a silhouette the border cuts, :func:`cut_centres`' (fitted full area).
         frames: (T,) session frame index of each position.
         params: overrides of :data:`ANCHOR_DEFAULTS`.
+        cut: per view, per frame position, the ids whose entry came from
+            :func:`cut_centres` (default: none).
 
     Returns:
         :data:`ANCHOR_COLUMNS`: centre (m, lab frame), the larger reprojection error of
-        the two centroids (pixels), the ratio of the two apparent sizes (≥ 1) and whether
-        both are within the limits.
+        the two centres (pixels), the ratio of the two apparent sizes (≥ 1), whether
+        either view's centre came from an outline fit (``cut``) and whether both are
+        within the limits. Fitted and measured centres pass the same test.
     """
     p = {**ANCHOR_DEFAULTS, **(params or {})}
     ca, cb = cameras[0], cameras[1]
     rows = []
     for k, f in enumerate(np.asarray(frames, dtype=np.int64)):
         a, b = centroids[0][k], centroids[1][k]
+        fitted = set().union(*(views[k] for views in cut)) if cut is not None else set()
         for bid in sorted(set(a) & set(b)):
             if bid < 1:
                 continue
@@ -153,7 +193,7 @@ def anchor_table(
             sa, sb = apparent_size(ca, X, a[bid][2]), apparent_size(cb, X, b[bid][2])
             ratio = max(sa, sb) / max(min(sa, sb), 1e-12)
             ok = rep <= float(p["max_reproj_px"]) and ratio <= float(p["max_size_ratio"])
-            rows.append((int(f), int(bid), *map(float, X), rep, ratio, bool(ok)))
+            rows.append((int(f), int(bid), *map(float, X), rep, ratio, bid in fitted, bool(ok)))
     return pd.DataFrame(rows, columns=ANCHOR_COLUMNS)
 
 
@@ -196,4 +236,108 @@ def downsample_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         take = cover > best
         out[take] = int(b)
         best[take] = cover[take]
+    return out
+
+
+def _fill_to_border(mask: np.ndarray, at_border: tuple[bool, bool, bool, bool]) -> np.ndarray:
+    """``mask`` (bool (h, w)) with its holes filled, the crop sides flagged in
+    ``at_border`` (top, bottom, left, right: the image's border) counted as closed: a
+    backlit bubble's bright core that the frame cuts open is filled as well."""
+    pads = [(int(at_border[0]), int(at_border[1])), (int(at_border[2]), int(at_border[3]))]
+    big = np.pad(mask, pads, constant_values=True)
+    filled = ndi.binary_fill_holes(big)
+    return filled[
+        pads[0][0] : filled.shape[0] - pads[0][1], pads[1][0] : filled.shape[1] - pads[1][1]
+    ]
+
+
+def fit_outline(points: np.ndarray) -> tuple[float, float, float] | None:
+    """The ellipse fitted to outline points (least squares, ``cv2.fitEllipse``).
+
+    Args:
+        points: (N, 2) outline points, pixels (column, row), N ≥ 5.
+
+    Returns:
+        ``(u, v, area)``: the ellipse's centre (pixels) and area (pixels²), or None where
+        the fit fails or is degenerate.
+    """
+    try:
+        (u, v), (da, db), _ = cv2.fitEllipse(np.asarray(points, np.float32))
+    except cv2.error:
+        return None
+    area = np.pi * da * db / 4.0
+    if not np.isfinite([u, v, area]).all() or min(da, db) <= 0:
+        return None
+    return float(u), float(v), float(area)
+
+
+def cut_centres(
+    contrast: np.ndarray,
+    labels: np.ndarray,
+    ids: set[int],
+    ring_px: int = ANCHOR_DEFAULTS["ring_px"],
+    min_visible: float = ANCHOR_DEFAULTS["min_visible"],
+    margin_px: int = 1,
+) -> dict[int, tuple[float, float, float]]:
+    """Centre and full area of each silhouette of ``ids`` that the image border cuts,
+    from the ellipse fitted to the visible part of its outline.
+
+    The outline is the sub-pixel half-cover line (level 0.5 of the cover weights of
+    :func:`coverage_centroids`, marching squares) of the region, its bright core filled
+    where the frame cuts it open; its points within ``margin_px`` of the outermost pixel
+    centres (the frame's cut) or within ``ring_px`` + 1 pixels of another region (a
+    shared edge) are left out. A silhouette gets a centre where the fit has at least
+    ``_MIN_OUTLINE_POINTS`` points and the visible (cover-weighted) area is at least
+    ``min_visible`` of the fitted ellipse's.
+
+    Args:
+        contrast: (H, W) relative darkness in [0, 1].
+        labels: (H, W) int, −1 background, ≥ 0 region ids.
+        ids: the regions to fit (those of :func:`border_ids`).
+        ring_px: band width of the cover weights, pixels.
+        min_visible: least fraction of the fitted silhouette's area inside the frame
+            (above 1: no fits, no centres).
+        margin_px: outline points less than this (pixels) inside the outermost pixel
+            centres are the frame's cut, not the silhouette's outline.
+
+    Returns:
+        ``{id: (u, v, area)}``: the fitted ellipse's centre (pixels, column, row) and its
+        area (pixels², the whole silhouette's, hidden part included).
+    """
+    lab = np.asarray(labels)
+    c = np.asarray(contrast, dtype=np.float64)
+    h, w = lab.shape
+    out: dict[int, tuple[float, float, float]] = {}
+    ids = {int(b) for b in ids if (lab == b).any()}
+    if not ids or float(min_visible) > 1.0:
+        return out
+    owner = lab
+    if ring_px > 0:
+        _, (ri, ci) = ndi.distance_transform_edt(lab < 0, return_indices=True)
+        owner = lab[ri, ci]
+    for b in sorted(ids):
+        m = lab == b
+        sl = _crop(m, int(ring_px) + 2)
+        y0, y1, x0, x1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
+        mm = _fill_to_border(m[sl], (y0 == 0, y1 == h, x0 == 0, x1 == w))
+        cover = _cover_weights(mm, c[sl], owner[sl] == b, ring_px)
+        lines = find_contours(np.pad(cover, 1), 0.5)  # closed: zero cover outside
+        if not lines:
+            continue
+        pts = max(lines, key=len)[:, ::-1] + (x0 - 1.0, y0 - 1.0)  # (column, row)
+        near = ndi.binary_dilation((lab[sl] >= 0) & (lab[sl] != b), iterations=int(ring_px) + 1)
+        iy = np.clip(np.rint(pts[:, 1]).astype(int) - y0, 0, y1 - y0 - 1)
+        ix = np.clip(np.rint(pts[:, 0]).astype(int) - x0, 0, x1 - x0 - 1)
+        keep = (
+            (pts[:, 0] >= margin_px)
+            & (pts[:, 0] <= w - 1 - margin_px)
+            & (pts[:, 1] >= margin_px)
+            & (pts[:, 1] <= h - 1 - margin_px)
+            & ~near[iy, ix]
+        )
+        if keep.sum() < _MIN_OUTLINE_POINTS:
+            continue
+        fit = fit_outline(pts[keep])
+        if fit is not None and float(cover.sum()) >= float(min_visible) * fit[2]:
+            out[b] = fit
     return out

@@ -13,9 +13,11 @@ Outputs in ``OUT``:
 * ``instances.csv`` — ``frame, camera, bubble, area, cx, cy, x0, y0, x1, y1, score``
   (pixels; ``score`` is the backend's confidence);
 * ``events.csv`` — ``frame, camera, event, parents, children`` (merge, split, detach);
-* ``anchors.csv`` — ``frame, bubble, x, y, z, reproj_px, size_ratio``: each bubble's
-  centre triangulated from its sub-pixel silhouette centroids in the first two views
-  (m, lab frame; :mod:`surfphase.masks.anchors`), where the views agree. Where they do
+* ``anchors.csv`` — ``frame, bubble, x, y, z, reproj_px, size_ratio, cut``: each
+  bubble's centre triangulated from its sub-pixel silhouette centroids in the first two
+  views (m, lab frame; :mod:`surfphase.masks.anchors`; ``cut``: a view's silhouette was
+  cut by its border and its centre is that of the ellipse fitted to the visible
+  outline), where the views agree. Where they do
   not, the bubble is removed from that frame's masks (``dropped_inconsistent`` in
   ``masks.json``).
 
@@ -262,20 +264,28 @@ def frame_anchors(
     params: Mapping,
 ) -> pd.DataFrame:
     """The triangulated centres (:func:`surfphase.masks.anchors.anchor_table`) of the
-    first two views' bubbles, from their sub-pixel silhouette centroids; a bubble whose
-    silhouette touches a view's border has none in that frame."""
+    first two views' bubbles, from their sub-pixel silhouette centroids; a silhouette
+    that touches a view's border has its centre and full area from the ellipse fitted to
+    its visible outline (:func:`surfphase.masks.anchors.cut_centres`) when at least
+    ``anchors: min_visible`` of it is in the frame, and none in that frame otherwise."""
     names = list(stacks)[:2]
     cp, ap = params["classical"], params["anchors"]
-    cents = []
+    cents, cuts = [], []
     for c in names:
-        per = []
+        per, per_cut = [], []
         for t in range(stacks[c].shape[0]):
             con = classical.relative_contrast(stacks[c][t], cp, backgrounds[c])
             cen = anchors.coverage_centroids(con, labels[c][t], int(ap["ring_px"]))
             cut = anchors.border_ids(labels[c][t])  # silhouettes the frame may cut
-            per.append({b: v for b, v in cen.items() if b not in cut})
+            fits = anchors.cut_centres(
+                con, labels[c][t], cut - {0}, int(ap["ring_px"]), float(ap["min_visible"])
+            )
+            per.append({**{b: v for b, v in cen.items() if b not in cut}, **fits})
+            per_cut.append(set(fits))
         cents.append(per)
-    return anchors.anchor_table([cameras[c].undistorted() for c in names], cents, frames, ap)
+        cuts.append(per_cut)
+    cams = [cameras[c].undistorted() for c in names]
+    return anchors.anchor_table(cams, cents, frames, ap, cuts)
 
 
 def drop_inconsistent(
@@ -283,8 +293,11 @@ def drop_inconsistent(
 ) -> int:
     """Remove, in place, each (frame position, bubble) whose two views disagree
     (``consistent`` false in :func:`frame_anchors`' table, frames as positions) from every
-    view's labels; return how many. ``instances`` gets ``bubble = -1`` there."""
-    bad = table[~table["consistent"].astype(bool)]
+    view's labels; return how many. ``instances`` gets ``bubble = -1`` there. A pair
+    with a centre fitted to a border-cut outline (``cut``) that disagrees only loses
+    its centre: the fit, not the pairing, is the likelier fault."""
+    cut = table["cut"].astype(bool) if "cut" in table else False
+    bad = table[~table["consistent"].astype(bool) & ~cut]
     for t, b in bad[["position", "bubble"]].itertuples(index=False):
         for lab in labels.values():
             lab[int(t)][lab[int(t)] == int(b)] = -1
@@ -401,7 +414,9 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
         atomic_write_text(tmp / "events.csv", events.to_csv(index=False))
         atomic_write_text(
             tmp / "anchors.csv",
-            anchor_tab[anchors.ANCHOR_COLUMNS[:-1]].to_csv(index=False, float_format="%.9g"),
+            anchor_tab[[k for k in anchors.ANCHOR_COLUMNS if k != "consistent"]].to_csv(
+                index=False, float_format="%.9g"
+            ),
         )
         n_frames = next(iter(stacks.values())).shape[0]
         k = max(0, min(int(p["overlay_frames"]), n_frames))
