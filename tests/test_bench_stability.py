@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from surfphase.bench.stability import add_noise, event_frames, track_changes
+from surfphase.bench.stability import add_noise, event_bubble_frames, track_changes
 
 
 def _table(dx: float = 0.0, dv: float = 0.0) -> pd.DataFrame:
@@ -16,13 +16,18 @@ def _table(dx: float = 0.0, dv: float = 0.0) -> pd.DataFrame:
 
 
 def test_changes_are_the_applied_shift_outside_events(tmp_path):
+    """A merge of 1 and 2 into 3 at frame 5: bubbles 1 and 2 (3 is not in the table)
+    lose frames 4-6; bubble 0 (the nucleation region) is never compared; a split of 7
+    elsewhere leaves them alone."""
     (tmp_path / "events.csv").write_text(
-        "frame,camera,event,parents,children\n5,cam0,merge,1+2,3\n"
+        "frame,camera,event,parents,children\n5,cam0,merge,1+2,3\n5,cam1,merge,1+2,3\n"
+        "2,cam0,split,7,8\n8,cam0,detach,0,1\n"
     )
-    skip = event_frames(tmp_path / "events.csv", 1)
-    assert skip == {4, 5, 6}
+    skip = event_bubble_frames(tmp_path / "events.csv", 1)
+    assert {(f, b) for f, b in skip if b in (1, 2)} == {(f, b) for f in (4, 5, 6) for b in (1, 2)}
+    assert {b for _, b in skip} == {1, 2, 3, 7, 8}  # the detach is no merge or split
     out = track_changes(_table(), _table(dx=20e-6, dv=0.003), skip)
-    assert out["matched"] == 2 * 7 and out["unmatched_ref"] == 0  # ids ≥ 1, 7 frames
+    assert out["matched"] == 2 * 7 and out["unmatched_ref"] == 0  # ids 1, 2: 7 frames each
     assert out["centroid_mean_um"] == pytest.approx(20.0)
     assert out["velocity_worst_mps"] == pytest.approx(0.003)
     assert out["velocity_worst_pct_of_speed"] == pytest.approx(100 * 0.003 / 0.2)
