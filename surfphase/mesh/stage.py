@@ -47,6 +47,7 @@ from surfphase.fit.outputs import load_surfels
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text, part_dir, replace_dir
 from surfphase.mesh.cleanup import clean_mesh, mesh_stats
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
+from surfphase.mesh.hull import elliptic_hull_distance
 from surfphase.mesh.measure import bubble_sizes, vertex_bubbles
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
 from surfphase.mesh.vtkxml import write_polydata, write_pvd
@@ -77,6 +78,10 @@ DEFAULTS: dict = {
     # hull (every input view's silhouettes, grown by this many pixels), so nothing is
     # meshed where an input view sees no bubble (carve_px: None = off).
     "carve_px": 1.0,
+    # ... and, per bubble, with its elliptic hull: each horizontal cross-section the
+    # ellipse closest to a circle that both views' silhouettes bound (surfphase.mesh.hull;
+    # a shape prior: a rising bubble is close to axisymmetric about the vertical).
+    "ellipse_hull": True,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }
 
@@ -118,12 +123,12 @@ def mesh_frame(
     inputs: list[Camera],
     p: dict,
     device: str = "cpu",
-    silhouettes: list[np.ndarray] | None = None,
+    labels: list[np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Mesh of one frame's surfels ((N, 3) m, (N, 4), (N, 2) ln m, (N,)) seen by the
-    input cameras; returns (V, 3) vertices (metres) and (F, 3) faces. ``silhouettes``:
-    per input camera, the frame's (H, W) bool foreground of its masks, for
-    ``carve_px``."""
+    input cameras; returns (V, 3) vertices (metres) and (F, 3) faces. ``labels``: per
+    input camera, the frame's (H, W) int masks (−1 background), for ``carve_px`` and
+    ``ellipse_hull``."""
     extent = float(np.ptp(means, axis=0).max())
     voxel = float(p["voxel_m"]) if p["voxel_m"] else extent / float(p["voxels"])
     trunc = float(p["trunc_voxels"]) * voxel
@@ -145,11 +150,14 @@ def mesh_frame(
     sdf = fuse_depths(depths, cams, origin, shape, voxel, trunc)
     if p["floor_y"] is not None:
         sdf = cut_below(sdf, origin, voxel, float(p["floor_y"]), trunc)
-    if silhouettes is not None and p["carve_px"] is not None:
+    if labels is not None and p["carve_px"] is not None:
+        views = [c.undistorted() for c in inputs]
         hull = silhouette_distance(
-            origin, sdf.shape, voxel, [c.undistorted() for c in inputs], silhouettes,
+            origin, sdf.shape, voxel, views, [np.asarray(m) >= 0 for m in labels],
             float(p["carve_px"]),
         )  # fmt: skip
+        if p["ellipse_hull"] and len(views) >= 2:
+            hull = np.maximum(hull, elliptic_hull_distance(origin, sdf.shape, voxel, views, labels))
         sdf = np.maximum(sdf, np.clip(hull, -trunc, trunc).astype(sdf.dtype))
     verts, faces = marching_cubes_mesh(sdf, origin, voxel)
     return clean_mesh(
@@ -377,7 +385,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
                 s.inputs,
                 s.p,
                 s.device,
-                None if s.masks is None else [np.asarray(m[t]) >= 0 for m in s.masks],
+                None if s.masks is None else [np.asarray(m[t]) for m in s.masks],
             )
             if len(verts):
                 vel = vertex_velocities(verts, surf["means"][t][a], surf["velocity"][t][a])

@@ -1,0 +1,140 @@
+"""The elliptic hull: each bubble's cross-sections as ellipses fitted to its two
+silhouettes ([docs/method.md §7](../../docs/method.md#7-meshes)).
+
+Two views bound a bubble's horizontal cross-section by two strips, one per view (the
+rays that graze its silhouette): the visual hull's cross-section is their
+parallelogram, elongated along the views' bisector (for views 40° apart a circle's
+parallelogram reaches 1.6× its radius along it). Every convex cross-section tangent to
+the four lines fits both views equally well; a rising bubble is close to axisymmetric
+about the vertical, so its cross-sections are close to circles. The elliptic hull
+takes, in each horizontal slice, the ellipse tangent to the four lines that is closest
+to a circle: for a sphere, or a spheroid with a vertical axis, the true cross-section.
+
+The slices are the epipolar planes, the planes through both camera centres: each cuts
+both silhouettes along corresponding epipolar lines, so the visual hull is, plane by
+plane, the intersection of the two views' wedges, exactly; and a sphere's section by
+any plane is a circle. With views at one height the planes are near horizontal where
+the bubbles are. Per bubble (the voxels that both views' masks give its id) and per
+slice, one voxel thick: in the plane's coordinates (along the baseline, distance from
+it), each view's across-direction ``a`` (unit, perpendicular to the ray from the view
+to the slice's centre), the strip's centre ``c`` and half-width ``r`` (the slice's
+hull voxels' extreme ``a · q`` ± half a voxel). The ellipse ``(q − p)ᵀ M⁻¹ (q − p) = 1`` has
+support ``aᵀ M a = r²`` in each view's direction and its centre ``p`` on both strips'
+centre lines; with ``M = α I + [[β, γ], [γ, −β]]`` the two support conditions are
+linear in (α, β, γ), and the least anisotropy ``β² + γ²`` is the minimum-norm solution.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from surfphase.cameras import Camera
+
+
+def slice_ellipse(
+    dirs: np.ndarray, centres: np.ndarray, half_widths: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The ellipse closest to a circle with the given supports in two directions.
+
+    Args:
+        dirs: (2, 2) unit across-directions ``a_k`` in the slice plane (x, z).
+        centres: (2,) ``a_k · p`` of the strips' centre lines (metres).
+        half_widths: (2,) the strips' half-widths ``r_k`` (metres).
+
+    Returns:
+        ``(p, M)``: (2,) centre and (2, 2) symmetric positive-definite matrix with
+        ``a_kᵀ M a_k = r_k²``; ``None`` when the directions are (nearly) parallel or no
+        such ellipse exists.
+    """
+    a = np.asarray(dirs, np.float64)
+    if abs(float(np.linalg.det(a))) < 1e-3:
+        return None
+    p = np.linalg.solve(a, np.asarray(centres, np.float64))
+    phi = np.arctan2(a[:, 1], a[:, 0])
+    c2, s2 = np.cos(2 * phi), np.sin(2 * phi)
+    r2 = np.asarray(half_widths, np.float64) ** 2
+    d = np.array([c2[0] - c2[1], s2[0] - s2[1]])
+    beta, gamma = (r2[0] - r2[1]) * d / float(d @ d)
+    alpha = r2[0] - beta * c2[0] - gamma * s2[0]
+    if alpha - np.hypot(beta, gamma) <= 0:
+        return None
+    M = np.array([[alpha + beta, gamma], [gamma, alpha - beta]])
+    return p, M
+
+
+def elliptic_hull_distance(
+    origin: np.ndarray,
+    shape: tuple[int, int, int],
+    voxel: float,
+    cameras: Sequence[Camera],
+    labels: Sequence[np.ndarray],
+) -> np.ndarray:
+    """Approximate signed distance (metres, positive outside) of every voxel centre to
+    the elliptic hull of the bubbles the labels show (see the module docstring).
+
+    Args:
+        origin: (3,) centre of voxel [0, 0, 0], metres (lab frame).
+        shape: (nx, ny, nz) voxels. voxel: edge, metres.
+        cameras: the first two input views' undistorted cameras.
+        labels: per view, the frame's (H, W) int labels (−1 background, ids ≥ 0).
+
+    Returns:
+        (nx, ny, nz) float64: per voxel that both views give one id, its distance to
+        that bubble's ellipse in its epipolar slice,
+        ``(√((q − p)ᵀ M⁻¹ (q − p)) − 1)·√(tr M / 2)``; ``−inf`` (no constraint)
+        elsewhere and in slices where no ellipse fits.
+    """
+    axes = [np.asarray(origin, np.float64)[i] + voxel * np.arange(shape[i]) for i in range(3)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    ids = []
+    for cam, lab in zip(cameras[:2], labels[:2], strict=True):
+        lab = np.asarray(lab)
+        h, w = lab.shape
+        z = cam.world_to_camera(X)[:, 2]
+        uv = np.round(cam.project(X, distort=False)).astype(np.int64)
+        seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        i = np.full(len(X), -1, np.int64)
+        i[seen] = lab[uv[seen, 1], uv[seen, 0]]
+        ids.append(i)
+    own = np.where((ids[0] == ids[1]) & (ids[0] >= 0), ids[0], -1)
+    out = np.full(len(X), -np.inf)
+    c0, c1 = cameras[0].center, cameras[1].center
+    u = (c1 - c0) / np.linalg.norm(c1 - c0)  # the baseline, which every epipolar plane holds
+    n1 = np.cross(u, [0.0, 1.0, 0.0])
+    if np.linalg.norm(n1) < 1e-6:
+        n1 = np.cross(u, [1.0, 0.0, 0.0])
+    n1 /= np.linalg.norm(n1)
+    n2 = np.cross(u, n1)
+    rel = X - c0
+    s_along = rel @ u  # in-plane coordinates: along the baseline ...
+    perp = rel - s_along[:, None] * u
+    rho = np.linalg.norm(perp, axis=1)  # ... and the distance from it
+    theta = np.arctan2(perp @ n2, perp @ n1)  # which epipolar plane
+    s_cam = np.array([0.0, float((c1 - c0) @ u)])
+    for b in np.unique(own[own >= 0]):
+        mine = np.flatnonzero(own == b)
+        # Slices one voxel thick where the bubble is.
+        dtheta = voxel / max(float(np.median(rho[mine])), 1e-12)
+        k = np.round(theta[mine] / dtheta).astype(np.int64)
+        for kk in np.unique(k):
+            sel = mine[k == kk]
+            q = np.stack([s_along[sel], rho[sel]], axis=1)
+            mid = q.mean(axis=0)
+            dirs, cen, half = [], [], []
+            for sc in s_cam:
+                ray = mid - np.array([sc, 0.0])
+                a = np.array([-ray[1], ray[0]]) / max(float(np.linalg.norm(ray)), 1e-12)
+                proj = q @ a
+                dirs.append(a)
+                cen.append(0.5 * (proj.min() + proj.max()))
+                half.append(0.5 * (proj.max() - proj.min() + voxel))
+            fit = slice_ellipse(np.array(dirs), np.array(cen), np.array(half))
+            if fit is None:
+                continue
+            p, M = fit
+            e = q - p
+            qf = np.einsum("ni,ij,nj->n", e, np.linalg.inv(M), e)
+            out[sel] = (np.sqrt(qf) - 1.0) * np.sqrt(0.5 * np.trace(M))
+    return out.reshape(shape)
