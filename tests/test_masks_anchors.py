@@ -410,3 +410,15 @@ def test_anchor_table_triangulates_a_bubble_cut_by_one_view_border():
     err = np.linalg.norm(row[["x", "y", "z"]].to_numpy(float) - X)
     assert err < 0.05 * r, err / r
     assert row["reproj_px"] < 0.2
+
+
+def test_nucleation_frames_need_every_view():
+    """The nucleation region is reported in a frame only when every view shows it."""
+    from surfphase.fit.outputs import nucleation_frames
+
+    a = np.full((3, 4, 4), -1, np.int32)
+    b = a.copy()
+    a[1, 0, 0] = b[1, 3, 3] = 0  # both views
+    a[2, 1, 1] = 0  # one view only
+    b[0, 2, 2] = 5  # a bubble, not the nucleation region
+    assert nucleation_frames([a, b], np.array([10, 11, 12])) == {11}

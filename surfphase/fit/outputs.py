@@ -227,12 +227,13 @@ def read_anchors(path: Path, session: str) -> pd.DataFrame | None:
 
 
 def nucleation_frames(label_stacks: Sequence[np.ndarray], frames: np.ndarray) -> set[int]:
-    """Session frame indices (``frames``, one per stack position) where some view's
-    (T, H, W) label stack shows the nucleation region (id 0)."""
+    """Session frame indices (``frames``, one per stack position) where every view's
+    (T, H, W) label stack shows the nucleation region (id 0): as for a bubble, both
+    views must see it (one view alone sees fragments on the plate's edge too)."""
     return {
         int(f)
         for t, f in enumerate(frames)
-        if any(bool((np.asarray(lab[t]) == 0).any()) for lab in label_stacks)
+        if all(bool((np.asarray(lab[t]) == 0).any()) for lab in label_stacks)
     }
 
 
@@ -261,7 +262,7 @@ def anchored_table(
     Args:
         table: :func:`bubble_table` without smoothing.
         anchors: ``frame, bubble, x, y, z`` (m, lab frame).
-        nucleation_frames: session frame indices where a view's masks show id 0.
+        nucleation_frames: session frame indices where every view's masks show id 0.
         track_window_s, track_order: as ``fit: track_window_s``, ``track_order``.
     """
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]

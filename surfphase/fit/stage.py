@@ -300,7 +300,7 @@ class SessionData:
         return {int(b): xyz[i] for i, b in enumerate(rows["bubble"])}
 
     def nucleation_frames(self) -> set[int]:
-        """Session frame indices where some view's masks show the nucleation region."""
+        """Session frame indices where every view's masks show the nucleation region."""
         from surfphase.fit.outputs import nucleation_frames
 
         return nucleation_frames(self.label_stacks, self.frame_indices[: self.n_frames])
