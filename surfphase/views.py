@@ -37,20 +37,13 @@ import torch
 
 from surfphase.cameras import Camera, load_cameras, orbit_cameras, save_cameras
 from surfphase.io import atomic_dir, atomic_path, save_npy
-
-DEFAULTS: dict = {
-    "n_views": 11,  # orbit views orbit01 … orbitNN
-    "step_deg": 30.0,  # azimuth step between consecutive views, degrees about lab +y
-    "reference": None,  # input camera the orbit starts from (None: the fit's first)
-}
+from surfphase.settings import check_keys
+from surfphase.views_params import DEFAULTS  # every setting, with its default
 
 
 def views_params(params: dict | None) -> dict:
     """Defaults updated with ``params``; unknown keys are an error."""
-    unknown = set(params or {}) - set(DEFAULTS)
-    if unknown:
-        raise ValueError(f"render-views: unknown parameters {sorted(unknown)} (known: "
-                         f"{sorted(DEFAULTS)})")  # fmt: skip
+    check_keys(DEFAULTS, params, "render-views")
     return {**DEFAULTS, **(params or {})}
 
 

@@ -141,3 +141,33 @@ def test_config_typo_fails_the_whole_dag_in_one_line(campaign: Path):
     out = r.stdout + r.stderr
     assert "config refine: Additional properties are not allowed ('enabeld' was unexpected)" in out
     assert len(out.strip().splitlines()) <= 5, out
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "line"),
+    [
+        (  # a key of a nested section of a stage's block
+            "    threshold_low: 0.08",
+            "    thresold_low: 0.08",
+            "config masks.classical.thresold_low: unknown key (did you mean threshold_low?)",
+        ),
+        (
+            "  iters_first: 150 ",
+            "  iters_frist: 150 ",
+            "config fit.iters_frist: unknown key (did you mean iters_first?)",
+        ),
+    ],
+)
+def test_stage_key_typo_fails_the_whole_dag_in_one_line(campaign: Path, old, new, line):
+    """The stages' blocks are open in the schema (their keys are the stages' DEFAULTS):
+    a key no stage knows stops every session before any job runs, not when that stage's
+    first job starts."""
+    cfg = campaign / "config" / "config.yaml"
+    text = cfg.read_text()
+    assert text.count(old) == 1
+    cfg.write_text(text.replace(old, new))
+    r = snakemake(campaign, "-n")
+    assert r.returncode != 0
+    out = r.stdout + r.stderr
+    assert line in out.splitlines(), out
+    assert len(out.strip().splitlines()) <= 5, out

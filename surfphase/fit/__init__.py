@@ -13,6 +13,8 @@
   frame after the advection;
 * :mod:`surfphase.fit.stage` — :func:`~surfphase.fit.stage.run_fit`, the checkpointed
   per-frame loop, and :data:`~surfphase.fit.stage.DEFAULTS` (every hyperparameter);
+* :mod:`surfphase.fit.params` — the stages' settings and defaults (``DEFAULTS``,
+  ``STAGE2_DEFAULTS``, ``FIT_OVERRIDES``), importable without torch;
 * :mod:`surfphase.fit.stage2` — :func:`~surfphase.fit.stage2.run_fit_stage2`, the same
   loop restarted from the stage-1 surfels with the refined orbit views as weighted
   extra supervision (docs/method.md §9); :mod:`surfphase.bench.fit_stage2` times its steps;

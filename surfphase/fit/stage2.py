@@ -45,41 +45,28 @@ import torch
 from surfphase.cameras import Camera, load_cameras
 from surfphase.fit.model import SurfelModel
 from surfphase.fit.outputs import load_surfels
-from surfphase.fit.stage import DEFAULTS as FIT_DEFAULTS
+from surfphase.fit.params import DEFAULTS as FIT_DEFAULTS
+from surfphase.fit.params import FIT_OVERRIDES  # stage-1 settings stage 2 changes
+from surfphase.fit.params import STAGE2_DEFAULTS as DEFAULTS  # config fit2:
 from surfphase.fit.stage import merge_params, run_fit
 from surfphase.io import atomic_write_json
 from surfphase.render.shading import monotone_raw
-
-#: Stage-2 settings (config ``fit2:``), with their defaults. Keys of the stage-1 fit
-#: (:data:`surfphase.fit.stage.DEFAULTS`) may be given in ``fit2:`` too; they override
-#: the stage-1 settings and :data:`FIT_OVERRIDES` for stage 2.
-DEFAULTS: dict = {
-    "weight_inputs": 1.0,  # photometric weight of each input view
-    "weight_near": 0.5,  # ... of each refined orbit view not in far_views
-    "weight_far": 0.25,  # ... of each refined orbit view in far_views
-    "far_views": [4, 5, 6, 7, 8],  # orbit view numbers (orbitNN) that count as far
-    "views_per_step": 4,  # refined views rendered per step (0: all of them)
-    "bg_alpha_max": 0.02,  # stage-1 alpha below which a refined pixel is background
-}
-
-#: Stage-1 settings that stage 2 changes by default: it starts from converged surfels,
-#: so frame 0 needs fewer steps and no densification.
-FIT_OVERRIDES: dict = {"iters_first": 60, "densify": False, "geo_from": 0.0}
+from surfphase.settings import check_keys
 
 
 def split_params(params: Mapping | None, fit_params: Mapping | None = None) -> tuple[dict, dict]:
     """(stage-2 settings, fit settings) from ``fit2:`` (``params``) and ``fit:``
     (``fit_params``). Precedence, lowest first: stage-1 defaults, ``fit:``,
     :data:`FIT_OVERRIDES`, fit keys in ``fit2:``. Unknown keys are an error."""
+    see = "surfphase.fit.stage2.DEFAULTS and surfphase.fit.stage.DEFAULTS"
+    check_keys({**FIT_DEFAULTS, **DEFAULTS}, params, "fit2", see=see)
     s2 = copy.deepcopy(DEFAULTS)
     fit = {**dict(fit_params or {}), **FIT_OVERRIDES}
     for k, v in (params or {}).items():
         if k in DEFAULTS:
             s2[k] = v
-        elif k in FIT_DEFAULTS:
-            fit[k] = v
         else:
-            raise ValueError(f"fit2: unknown parameter {k!r}")
+            fit[k] = v
     if float(s2["weight_inputs"]) <= 0:
         raise ValueError("fit2: weight_inputs must be positive")
     for k in ("weight_near", "weight_far", "bg_alpha_max"):

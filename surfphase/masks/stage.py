@@ -51,6 +51,7 @@ from surfphase.masks import anchors, classical
 from surfphase.masks.amg import SAM_DEFAULTS
 from surfphase.masks.associate import ASSOCIATE_DEFAULTS, associate
 from surfphase.masks.overlay import overlay_frame, save_png
+from surfphase.settings import check_keys
 
 #: Parameters of the stage (config.yaml ``masks:``); nested sections are merged key by key.
 DEFAULTS: dict = {
@@ -75,16 +76,12 @@ def merge_params(params: Mapping | None) -> dict:
 
     Unknown keys are an error, so a typo in config.yaml does not go unnoticed.
     """
+    check_keys(DEFAULTS, params, "masks")
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in DEFAULTS.items()}
     for k, v in (params or {}).items():
-        if k not in out:
-            raise ValueError(f"unknown masks parameter {k!r} (known: {sorted(out)})")
         if isinstance(out[k], dict):
             if not isinstance(v, Mapping):
                 raise ValueError(f"masks.{k} must be a mapping, not {v!r}")
-            for kk in v:
-                if kk not in out[k]:
-                    raise ValueError(f"unknown parameter masks.{k}.{kk} (known: {sorted(out[k])})")
             out[k].update(v)
         else:
             out[k] = v

@@ -49,51 +49,18 @@ from surfphase.mesh.cleanup import clean_mesh, mesh_stats
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
 from surfphase.mesh.hull import elliptic_hull_distance
 from surfphase.mesh.measure import bubble_sizes, vertex_bubbles
+from surfphase.mesh.params import DEFAULTS  # every setting, with its default
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
 from surfphase.mesh.vtkxml import write_polydata, write_pvd
 from surfphase.mesh.windows import window_positions
 from surfphase.progress import Progress
-
-DEFAULTS: dict = {
-    "voxels": 64,  # voxels along the longest side of the surfels' bounding box
-    "voxel_m": None,  # or an explicit voxel edge, metres (overrides "voxels")
-    "trunc_voxels": 3.0,  # truncation τ, in voxels
-    "margin_voxels": 4.0,  # grid margin around the surfels' bounding box, in voxels
-    "render_scale": 2.0,  # depth maps rendered at this multiple of the input size
-    "opacity_min": 0.1,  # surfels below this are left out of the depth maps ...
-    "solid": True,  # ... the others rendered opaque, so thin shells block the view
-    "scale_factor": 1.5,  # surfel sizes ×this for the depth maps (closes pinholes)
-    "alpha_min": 0.5,  # pixels with more accumulated alpha get the median depth
-    "silhouette_alpha": 0.05,  # silhouette (holes filled) threshold; see render_depths
-    "n_orbit": 11,
-    "orbit_step_deg": 30.0,
-    "min_component_m": 3.0e-4,  # components with a smaller bounding-box diagonal go
-    "smooth_steps": 5,  # Taubin steps
-    "max_hole_edges": 30,
-    "speed_max": 0.4,  # m/s, top of the colour map; "session" = max vertex speed seen
-    # The heated surface (y = 0, docs/conventions.md §1): the volume below it is solid plate, so
-    # the fused volume is cut there and bubbles sitting on it get a flat base; None = off.
-    "floor_y": 0.0,  # metres, lab frame
-    # With the session's masks: the fused volume is intersected with the masks' visual
-    # hull (every input view's silhouettes, grown by this many pixels), so nothing is
-    # meshed where an input view sees no bubble (carve_px: None = off).
-    "carve_px": 1.0,
-    # ... and, per bubble, with its elliptic hull: each horizontal cross-section the
-    # ellipse closest to a circle that both views' silhouettes bound (surfphase.mesh.hull;
-    # a shape prior: a rising bubble is close to axisymmetric about the vertical).
-    "ellipse_hull": True,
-    "frames": None,  # positions (0-based) in surfels.npz; None = all
-}
+from surfphase.settings import check_keys
 
 
 def mesh_params(params: dict | None) -> dict:
     """Defaults updated with ``params``; unknown keys are an error."""
-    p = dict(DEFAULTS)
-    for k, v in (params or {}).items():
-        if k not in DEFAULTS:
-            raise ValueError(f"mesh: unknown parameter {k!r} (known: {sorted(DEFAULTS)})")
-        p[k] = v
-    return p
+    check_keys(DEFAULTS, params, "mesh")
+    return {**DEFAULTS, **(params or {})}
 
 
 def vertex_velocities(

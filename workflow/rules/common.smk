@@ -26,6 +26,7 @@ import yaml
 from snakemake.exceptions import WorkflowError
 from snakemake.settings.types import DeploymentMethod
 from snakemake.utils import min_version, validate
+from surfphase.settings import key_hint, unknown_keys
 
 min_version("8.0")
 
@@ -43,13 +44,45 @@ def config_problems(cfg, schema_file):
     return "\n".join(lines)
 
 
+def stage_key_problems(cfg):
+    """One line per key of a stage's block of the config that the stage does not know
+    (``config fit.iters_frist: unknown key (did you mean iters_first?)``).
+
+    The schema leaves these blocks open: their keys are the stages' ``DEFAULTS``, read
+    here without importing torch (``surfphase.fit.params``, ``surfphase.mesh.params``).
+    """
+    from surfphase.fit.params import DEFAULTS as FIT_DEFAULTS
+    from surfphase.fit.params import STAGE2_DEFAULTS
+    from surfphase.masks.stage import DEFAULTS as MASKS_DEFAULTS
+    from surfphase.mesh.params import DEFAULTS as MESH_DEFAULTS
+
+    known = {  # section: (its keys, where they are documented)
+        "masks": (MASKS_DEFAULTS, "surfphase.masks.stage.DEFAULTS"),
+        "fit": (FIT_DEFAULTS, "surfphase.fit.stage.DEFAULTS"),
+        # fit keys in fit2: override fit: for stage 2
+        "fit2": ({**FIT_DEFAULTS, **STAGE2_DEFAULTS}, "surfphase.fit.stage2.DEFAULTS and fit"),
+        # window: how mesh jobs are cut (mesh.smk); the stage never sees it
+        "mesh": ({**MESH_DEFAULTS, "window": 0}, "surfphase.mesh.stage.DEFAULTS"),
+    }
+    lines = []
+    for section, (defaults, see) in known.items():
+        given = cfg.get(section)
+        if not isinstance(given, dict):
+            continue  # absent, or not a mapping: the schema says so
+        for key in unknown_keys(defaults, given, section):
+            lines.append(f"config {key}: unknown key ({key_hint(defaults, key, see)})")
+    return lines
+
+
 # The config is campaign-wide: any problem stops the whole workflow, in one line each.
 try:
     validate(config, schema="../schemas/config.schema.yaml")  # also sets the defaults
+    schema_problems = ""
 except WorkflowError as e:
-    raise WorkflowError(
-        config_problems(config, "../schemas/config.schema.yaml") or str(e)
-    ) from None
+    schema_problems = config_problems(config, "../schemas/config.schema.yaml") or str(e)
+config_lines = [*filter(None, [schema_problems]), *stage_key_problems(config)]
+if config_lines:
+    raise WorkflowError("\n".join(config_lines))
 
 RESULTS = config["results"].rstrip("/")
 # Jobs call the Python that runs Snakemake; with `--sdm conda` each job runs inside

@@ -17,7 +17,7 @@ rule render_views:
         surfphase=SURFPHASE,
         settings=lambda wc: json.dumps(views_settings()),
         device=config["device"],
-        code=code_version("views", "render", "fit/outputs", "commands/views"),
+        code=code_version("views", "views_params", "render", "fit/outputs", "commands/views"),
     threads: config["threads"]
     log:
         "logs/render_views/{session}.log",
@@ -72,7 +72,7 @@ rule refine:
         strength=lambda wc: view_strength(wc.view),
         seed=int(REFINE_SETTINGS.get("seed", config.get("seed", 0))),
         device=config["device"],
-        code=code_version("prior", "views", "commands/prior"),
+        code=code_version("prior", "views", "views_params", "commands/prior"),
     threads: config["threads"]
     resources:
         gpu=lambda wc: 1 if config["device"] == "cuda" else 0,

@@ -1,0 +1,83 @@
+"""One check of unknown setting keys for every stage (surfphase.settings)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from surfphase.settings import check_keys, key_hint, unknown_keys
+
+DEFAULTS = {
+    "backend": "classical",
+    "classical": {"threshold_low": 0.08, "threshold_high": 0.2},
+    "frames": None,
+    "far_views": [4, 5],
+}
+
+
+def test_unknown_keys_are_dotted_and_nested_sections_recursed():
+    given = {
+        "backend": "sam",
+        "classical": {"threshold_low": 0.1, "thresold_high": 0.3},
+        "framez": 3,
+        "far_views": [1],
+    }
+    assert unknown_keys(DEFAULTS, given, "masks") == [
+        "masks.classical.thresold_high",
+        "masks.framez",
+    ]
+
+
+def test_known_and_empty_settings_have_no_unknown_keys():
+    assert unknown_keys(DEFAULTS, {}, "masks") == []
+    assert unknown_keys(DEFAULTS, None, "masks") == []
+    assert unknown_keys(DEFAULTS, {"classical": {}, "frames": 5}, "masks") == []
+    # A nested section given as something else is the stage's to refuse, not unknown;
+    # a mapping given where the default is not one is a value, not a section.
+    assert unknown_keys(DEFAULTS, {"classical": 3, "frames": {"x": 1}}, "masks") == []
+
+
+def test_hint_names_close_keys_or_lists_the_known_ones():
+    assert key_hint(DEFAULTS, "masks.classical.thresold_low") == "did you mean threshold_low?"
+    assert key_hint(DEFAULTS, "masks.zzz") == "known: backend, classical, far_views, frames"
+    many = {f"key{i:02d}": i for i in range(40)}
+    assert key_hint(many, "fit.zzz", see="X.DEFAULTS") == (
+        "not one of the 40 known keys; see X.DEFAULTS"
+    )
+
+
+def test_check_keys_raises_naming_every_unknown_key():
+    check_keys(DEFAULTS, {"backend": "sam"}, "masks")
+    with pytest.raises(ValueError, match="unknown parameter") as e:
+        check_keys(DEFAULTS, {"classical": {"thresold_low": 1}, "zzz": 0}, "masks")
+    msg = str(e.value)
+    assert "masks.classical.thresold_low (did you mean threshold_low?)" in msg
+    assert "masks.zzz" in msg
+
+
+def test_stage_defaults_import_without_torch():
+    """The workflow reads the stages' DEFAULTS while it builds the DAG: no torch."""
+    code = (
+        "import sys\n"
+        "import surfphase.fit.params, surfphase.mesh.params, surfphase.views_params\n"
+        "import surfphase.masks.stage, surfphase.settings\n"
+        "print('torch' in sys.modules)\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert r.stdout.strip() == "False"
+
+
+def test_stage_modules_hold_the_moved_defaults():
+    from surfphase import views, views_params
+    from surfphase.fit import params as fit_params
+    from surfphase.fit import stage, stage2
+    from surfphase.mesh import params as mesh_params
+    from surfphase.mesh import stage as mesh_stage
+
+    assert stage.DEFAULTS is fit_params.DEFAULTS
+    assert stage2.DEFAULTS is fit_params.STAGE2_DEFAULTS
+    assert stage2.FIT_OVERRIDES is fit_params.FIT_OVERRIDES
+    assert mesh_stage.DEFAULTS is mesh_params.DEFAULTS
+    assert views.DEFAULTS is views_params.DEFAULTS
