@@ -16,20 +16,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-#: Automatic-mask-generation parameters (config.yaml ``masks.sam``): the ONNX files
-#: (:mod:`surfphase.masks.sam_onnx`) and the generation's thresholds.
-SAM_DEFAULTS: dict = {
-    "encoder": "resources/sam/sam_encoder.onnx",
-    "decoder": "resources/sam/sam_decoder.onnx",
-    "points_per_side": 32,
-    "points_per_batch": 64,
-    "pred_iou_thresh": 0.88,
-    "stability_score_thresh": 0.95,
-    "stability_score_offset": 1.0,
-    "box_nms_thresh": 0.7,
-    "min_region_area": 0,
-}
-
 
 def point_grid(points_per_side: int, width: int, height: int) -> np.ndarray:
     """(n², 2) float64 pixel coordinates (u, v) of an n×n grid of prompts.

@@ -27,28 +27,7 @@ from scipy import ndimage as ndi
 from skimage.measure import find_contours
 
 from surfphase.cameras import Camera, triangulate
-
-#: Parameters (config ``masks: anchors:``).
-ANCHOR_DEFAULTS: dict = {
-    # Width (pixels) of the band around each mask whose partial darkness counts as
-    # partial cover (anti-aliased, blurred edges): 0 = the binary mask's centroid.
-    "ring_px": 2,
-    # Two views agree on a bubble when its triangulated centre reprojects within this
-    # many pixels of both silhouette centroids ...
-    "max_reproj_px": 1.0,
-    # ... and the sizes its two silhouettes give at that centre (equivalent radius ×
-    # distance / focal length) differ by at most this factor.
-    "max_size_ratio": 1.3,
-    # A bubble whose triangulated centre moves slower than this (m/s; the least-squares
-    # speed over its frames, at least 3) is a static feature of the scene (a speck on
-    # the plate or the window), not a free bubble: buoyancy lifts a free bubble of 0.1 mm
-    # diameter in water at about 5 mm/s, larger ones faster. 0 keeps them all.
-    "min_speed_mps": 0.005,
-    # A silhouette the image border cuts gets its centre and full area from the ellipse
-    # fitted to its visible outline (cut_centres) when at least this fraction (0-1) of
-    # the fitted ellipse's area is inside the frame; above 1: never (no centre).
-    "min_visible": 0.6,
-}
+from surfphase.masks.params import ANCHOR_DEFAULTS
 
 #: Fewest outline points an outline fit takes (a conic has 5 degrees of freedom).
 _MIN_OUTLINE_POINTS = 8

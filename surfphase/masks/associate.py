@@ -43,31 +43,7 @@ from scipy import ndimage as ndi
 from scipy.optimize import linear_sum_assignment
 
 from surfphase.cameras import Camera, triangulate
-
-#: Parameters of :func:`associate` (config.yaml ``masks.associate``).
-ASSOCIATE_DEFAULTS: dict = {
-    # Gate of the cross-view pair cost, fraction of the image height.
-    "view_gate_frac": 0.04,
-    # An attached bubble's silhouette bottom is within this height of the plate, metres
-    # (about two pixels of a typical recording: the bottom's triangulation error).
-    "nucleation_height": 1.0e-4,
-    # Without cameras: attached when the bottom is within this many rows (fraction of
-    # the height) of the lowest silhouette bottom seen in the session.
-    "nucleation_margin_frac": 0.02,
-    # Frame-to-frame: minimum IoU of a track's predicted mask with the next instance.
-    "track_iou_min": 0.2,
-    # A track unseen for up to this many frames (hidden behind another) may come back.
-    "coast_frames": 8,
-    # Merge/split: an overlap counts when it covers this fraction of the smaller mask.
-    "event_overlap_frac": 0.25,
-    # Cross-view link: paired in at least this fraction of the common frames.
-    "link_frac": 0.3,
-    # A merge is dated back over up to this many seconds (at least one frame) in which
-    # the parents touch in every view: a young merged bubble is two lobes the segmenter
-    # may still cut apart for about the coalescence time (~1 ms for mm bubbles in water),
-    # however many frames that is. Seconds, so one setting holds across frame rates.
-    "merge_lobe_s": 0.001,
-}
+from surfphase.masks.params import ASSOCIATE_DEFAULTS
 
 
 def lobe_frames(merge_lobe_s: float, fps: float | None) -> int:

@@ -29,53 +29,7 @@ from skimage.feature import peak_local_max
 from skimage.filters import apply_hysteresis_threshold
 from skimage.segmentation import watershed
 
-#: Parameters of :func:`segment_frame` (mirrored in config.yaml under ``masks.classical``).
-CLASSICAL_DEFAULTS: dict = {
-    # "dark": bubbles darker than the background (shadowgraph); "bright": the opposite.
-    "polarity": "dark",
-    # Total degree of the robust polynomial background fit.
-    "background_degree": 4,
-    # Session reference: this per-pixel percentile over (at most max) frames; on the
-    # plate, the plate percentile.
-    "reference_percentile": 90.0,
-    "plate_percentile": 50.0,
-    "reference_max_frames": 64,
-    # Static dark structure (the heated plate): darker than the fitted background by
-    # this fraction in the reference, touching the border, at least this area fraction.
-    "static_dark_frac": 0.35,
-    "static_min_area_frac": 0.01,
-    # Running-median window along the plate edge, fraction of the image width
-    # (more than twice the widest bubble sitting on the plate).
-    "static_notch_frac": 0.35,
-    # On the plate, a reference pixel this far (fraction) from the along-edge median
-    # is a bubble persisting at a nucleation site, not the plate.
-    "static_outlier_frac": 0.25,
-    # Edge of a bubble in front of the static structure, relative contrast.
-    "static_edge": 0.25,
-    # Where the background itself is darker than this (black plate sides), nothing is seen.
-    "background_floor": 0.08,
-    # Gaussian smoothing before detection (not for the edge), pixels.
-    "smooth_px": 0.7,
-    # Hysteresis thresholds on the relative contrast (background − image) / background.
-    "threshold_low": 0.08,
-    "threshold_high": 0.2,
-    # ... and at least this many times the contrast's own noise there (the per-pixel
-    # spread of the smoothed contrast between consecutive frames,
-    # :func:`contrast_noise`): on a dim plate the relative contrast of camera noise is
-    # large, and thresholds meant for the bright backlight would segment it.
-    "noise_low": 3.0,
-    "noise_high": 5.0,
-    # Window (pixels) of the spatial median that steadies the per-pixel noise estimate.
-    "noise_window_px": 9,
-    # Edge of each object at this fraction of its own peak contrast (half maximum).
-    "edge_frac": 0.5,
-    # Peaks of the distance transform closer than this (fraction of shorter side) merge.
-    "split_min_distance_frac": 0.012,
-    # Two touching pieces stay one bubble when neck width / smaller width exceeds this.
-    "split_neck_ratio": 0.7,
-    # Minimum instance area, fraction of the image area (and never below 6 pixels).
-    "min_area_frac": 2.0e-4,
-}
+from surfphase.masks.params import CLASSICAL_DEFAULTS
 
 
 def to_unit_float(frame: np.ndarray) -> np.ndarray:

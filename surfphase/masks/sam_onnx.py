@@ -36,8 +36,8 @@ import torch
 import torch.nn.functional as F
 
 from surfphase.masks import amg
-from surfphase.masks.amg import SAM_DEFAULTS
 from surfphase.masks.classical import to_unit_float
+from surfphase.masks.params import SAM_DEFAULTS
 
 #: SAM's input side and its RGB normalisation (pixel values 0..255).
 SAM_IMAGE_SIZE = 1024

@@ -48,27 +48,10 @@ import pandas as pd
 from surfphase.cameras import load_cameras
 from surfphase.io import atomic_write_json, atomic_write_text, load_stack, save_npy
 from surfphase.masks import anchors, classical
-from surfphase.masks.amg import SAM_DEFAULTS
-from surfphase.masks.associate import ASSOCIATE_DEFAULTS, associate
+from surfphase.masks.associate import associate
 from surfphase.masks.overlay import overlay_frame, save_png
+from surfphase.masks.params import DEFAULTS
 from surfphase.settings import check_keys
-
-#: Parameters of the stage (config.yaml ``masks:``); nested sections are merged key by key.
-DEFAULTS: dict = {
-    # classical (embedded, default) or sam (ONNX models from masks.sam.encoder/decoder).
-    "backend": "classical",
-    "classical": dict(classical.CLASSICAL_DEFAULTS),
-    "sam": dict(SAM_DEFAULTS),
-    "associate": dict(ASSOCIATE_DEFAULTS),
-    # Triangulated centres and the two views' agreement (surfphase.masks.anchors).
-    "anchors": dict(anchors.ANCHOR_DEFAULTS),
-    # Number of overlay pictures (evenly spaced frames).
-    "overlay_frames": 4,
-    # A frame whose intensities (0.1 to 99.9 percentile) span less than this fraction of
-    # the full scale is blank (black, saturated, a lens cap); a camera whose every frame
-    # is blank stops the stage, naming the session, camera and video.
-    "min_dynamic_range": 0.01,
-}
 
 
 def merge_params(params: Mapping | None) -> dict:

@@ -49,11 +49,12 @@ def stage_key_problems(cfg):
     (``config fit.iters_frist: unknown key (did you mean iters_first?)``).
 
     The schema leaves these blocks open: their keys are the stages' ``DEFAULTS``, read
-    here without importing torch (``surfphase.fit.params``, ``surfphase.mesh.params``).
+    here without importing torch or OpenCV (``surfphase.fit.params``,
+    ``surfphase.masks.params``, ``surfphase.mesh.params``).
     """
     from surfphase.fit.params import DEFAULTS as FIT_DEFAULTS
     from surfphase.fit.params import STAGE2_DEFAULTS
-    from surfphase.masks.stage import DEFAULTS as MASKS_DEFAULTS
+    from surfphase.masks.params import DEFAULTS as MASKS_DEFAULTS
     from surfphase.mesh.params import DEFAULTS as MESH_DEFAULTS
 
     known = {  # section: (its keys, where they are documented)

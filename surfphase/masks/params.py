@@ -1,0 +1,138 @@
+"""Every setting of the mask stage and its default (config.yaml ``masks:``), in one
+module without heavy imports, so the workflow checks a campaign's ``masks:`` keys when
+it builds its DAG. The stage's modules use these dicts (:mod:`surfphase.masks.classical`,
+:mod:`~surfphase.masks.amg`, :mod:`~surfphase.masks.associate`,
+:mod:`~surfphase.masks.anchors`, :mod:`~surfphase.masks.stage`).
+"""
+
+from __future__ import annotations
+
+#: Parameters of :func:`segment_frame` (mirrored in config.yaml under ``masks.classical``).
+CLASSICAL_DEFAULTS: dict = {
+    # "dark": bubbles darker than the background (shadowgraph); "bright": the opposite.
+    "polarity": "dark",
+    # Total degree of the robust polynomial background fit.
+    "background_degree": 4,
+    # Session reference: this per-pixel percentile over (at most max) frames; on the
+    # plate, the plate percentile.
+    "reference_percentile": 90.0,
+    "plate_percentile": 50.0,
+    "reference_max_frames": 64,
+    # Static dark structure (the heated plate): darker than the fitted background by
+    # this fraction in the reference, touching the border, at least this area fraction.
+    "static_dark_frac": 0.35,
+    "static_min_area_frac": 0.01,
+    # Running-median window along the plate edge, fraction of the image width
+    # (more than twice the widest bubble sitting on the plate).
+    "static_notch_frac": 0.35,
+    # On the plate, a reference pixel this far (fraction) from the along-edge median
+    # is a bubble persisting at a nucleation site, not the plate.
+    "static_outlier_frac": 0.25,
+    # Edge of a bubble in front of the static structure, relative contrast.
+    "static_edge": 0.25,
+    # Where the background itself is darker than this (black plate sides), nothing is seen.
+    "background_floor": 0.08,
+    # Gaussian smoothing before detection (not for the edge), pixels.
+    "smooth_px": 0.7,
+    # Hysteresis thresholds on the relative contrast (background − image) / background.
+    "threshold_low": 0.08,
+    "threshold_high": 0.2,
+    # ... and at least this many times the contrast's own noise there (the per-pixel
+    # spread of the smoothed contrast between consecutive frames,
+    # :func:`contrast_noise`): on a dim plate the relative contrast of camera noise is
+    # large, and thresholds meant for the bright backlight would segment it.
+    "noise_low": 3.0,
+    "noise_high": 5.0,
+    # Window (pixels) of the spatial median that steadies the per-pixel noise estimate.
+    "noise_window_px": 9,
+    # Edge of each object at this fraction of its own peak contrast (half maximum).
+    "edge_frac": 0.5,
+    # Peaks of the distance transform closer than this (fraction of shorter side) merge.
+    "split_min_distance_frac": 0.012,
+    # Two touching pieces stay one bubble when neck width / smaller width exceeds this.
+    "split_neck_ratio": 0.7,
+    # Minimum instance area, fraction of the image area (and never below 6 pixels).
+    "min_area_frac": 2.0e-4,
+}
+
+
+#: Automatic-mask-generation parameters (config.yaml ``masks.sam``): the ONNX files
+#: (:mod:`surfphase.masks.sam_onnx`) and the generation's thresholds.
+SAM_DEFAULTS: dict = {
+    "encoder": "resources/sam/sam_encoder.onnx",
+    "decoder": "resources/sam/sam_decoder.onnx",
+    "points_per_side": 32,
+    "points_per_batch": 64,
+    "pred_iou_thresh": 0.88,
+    "stability_score_thresh": 0.95,
+    "stability_score_offset": 1.0,
+    "box_nms_thresh": 0.7,
+    "min_region_area": 0,
+}
+
+
+#: Parameters of :func:`associate` (config.yaml ``masks.associate``).
+ASSOCIATE_DEFAULTS: dict = {
+    # Gate of the cross-view pair cost, fraction of the image height.
+    "view_gate_frac": 0.04,
+    # An attached bubble's silhouette bottom is within this height of the plate, metres
+    # (about two pixels of a typical recording: the bottom's triangulation error).
+    "nucleation_height": 1.0e-4,
+    # Without cameras: attached when the bottom is within this many rows (fraction of
+    # the height) of the lowest silhouette bottom seen in the session.
+    "nucleation_margin_frac": 0.02,
+    # Frame-to-frame: minimum IoU of a track's predicted mask with the next instance.
+    "track_iou_min": 0.2,
+    # A track unseen for up to this many frames (hidden behind another) may come back.
+    "coast_frames": 8,
+    # Merge/split: an overlap counts when it covers this fraction of the smaller mask.
+    "event_overlap_frac": 0.25,
+    # Cross-view link: paired in at least this fraction of the common frames.
+    "link_frac": 0.3,
+    # A merge is dated back over up to this many seconds (at least one frame) in which
+    # the parents touch in every view: a young merged bubble is two lobes the segmenter
+    # may still cut apart for about the coalescence time (~1 ms for mm bubbles in water),
+    # however many frames that is. Seconds, so one setting holds across frame rates.
+    "merge_lobe_s": 0.001,
+}
+
+
+#: Parameters (config ``masks: anchors:``).
+ANCHOR_DEFAULTS: dict = {
+    # Width (pixels) of the band around each mask whose partial darkness counts as
+    # partial cover (anti-aliased, blurred edges): 0 = the binary mask's centroid.
+    "ring_px": 2,
+    # Two views agree on a bubble when its triangulated centre reprojects within this
+    # many pixels of both silhouette centroids ...
+    "max_reproj_px": 1.0,
+    # ... and the sizes its two silhouettes give at that centre (equivalent radius ×
+    # distance / focal length) differ by at most this factor.
+    "max_size_ratio": 1.3,
+    # A bubble whose triangulated centre moves slower than this (m/s; the least-squares
+    # speed over its frames, at least 3) is a static feature of the scene (a speck on
+    # the plate or the window), not a free bubble: buoyancy lifts a free bubble of 0.1 mm
+    # diameter in water at about 5 mm/s, larger ones faster. 0 keeps them all.
+    "min_speed_mps": 0.005,
+    # A silhouette the image border cuts gets its centre and full area from the ellipse
+    # fitted to its visible outline (cut_centres) when at least this fraction (0-1) of
+    # the fitted ellipse's area is inside the frame; above 1: never (no centre).
+    "min_visible": 0.6,
+}
+
+
+#: Parameters of the stage (config.yaml ``masks:``); nested sections are merged key by key.
+DEFAULTS: dict = {
+    # classical (embedded, default) or sam (ONNX models from masks.sam.encoder/decoder).
+    "backend": "classical",
+    "classical": dict(CLASSICAL_DEFAULTS),
+    "sam": dict(SAM_DEFAULTS),
+    "associate": dict(ASSOCIATE_DEFAULTS),
+    # Triangulated centres and the two views' agreement (surfphase.masks.anchors).
+    "anchors": dict(ANCHOR_DEFAULTS),
+    # Number of overlay pictures (evenly spaced frames).
+    "overlay_frames": 4,
+    # A frame whose intensities (0.1 to 99.9 percentile) span less than this fraction of
+    # the full scale is blank (black, saturated, a lens cap); a camera whose every frame
+    # is blank stops the stage, naming the session, camera and video.
+    "min_dynamic_range": 0.01,
+}
