@@ -89,3 +89,42 @@ def test_slice_ellipse_is_the_circle_when_the_strips_are_equal():
     assert np.allclose([a[0] @ M @ a[0], a[1] @ M @ a[1]], [0.25, 0.49])
     assert np.all(np.linalg.eigvalsh(M) > 0)
     assert slice_ellipse(np.array([[1.0, 0.0], [1.0, 1e-6]]), np.zeros(2), np.ones(2)) is None
+
+
+def test_ghosts_where_the_views_see_two_bubbles_are_carved():
+    """Two spheres side by side: where one view's rays through sphere 3 cross the other
+    view's through sphere 4, the visual hull holds a ghost; the elliptic hull carves it
+    (+inf) and keeps both spheres."""
+    cams = _rig()
+    r = 6e-4
+    offs = {3: np.array([-1.5e-3, 0.0, 0.0]), 4: np.array([1.5e-3, 0.0, 0.0])}
+    labels = []
+    for cam in cams:
+        lab = np.full((cam.height, cam.width), -1, np.int32)
+        vv, uu = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float64)
+        for b, off in offs.items():
+            uv = cam.project((CENTRE + off)[None], distort=False)[0]
+            rp = r * cam.K[0, 0] / cam.world_to_camera((CENTRE + off)[None])[0, 2]
+            lab[np.hypot(uu - uv[0], vv - uv[1]) <= rp] = b
+        labels.append(lab)
+    voxel = 5e-5
+    origin = CENTRE - 4e-3
+    n = int(8e-3 / voxel) + 1
+    axes = [origin[i] + voxel * np.arange(n) for i in range(3)]
+    P = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    hull = silhouette_distance(origin, (n, n, n), voxel, cams, [lab >= 0 for lab in labels])
+    ell = elliptic_hull_distance(origin, (n, n, n), voxel, cams, labels).ravel()
+    near = np.min([np.linalg.norm(P - (CENTRE + o), axis=1) for o in offs.values()], axis=0)
+    seen = []
+    for cam, lab in zip(cams, labels, strict=True):
+        uv = np.round(cam.project(P, distort=False)).astype(int)
+        ok = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        seen.append(
+            np.where(ok, lab[uv[:, 1].clip(0, cam.height - 1), uv[:, 0].clip(0, cam.width - 1)], -1)
+        )
+    ghost = (seen[0] >= 0) & (seen[1] >= 0) & (seen[0] != seen[1])
+    assert ghost.sum() > 100 and (hull.ravel()[ghost] <= 0).all()  # the hull's ghosts ...
+    assert near[ghost].min() > r and np.isposinf(ell[ghost]).all()  # ... are carved
+    same = (seen[0] >= 0) & (seen[0] == seen[1])
+    assert (ell[same & (near > 2 * r)] > 0).all()  # the hull's corners
+    assert (ell[near < 0.7 * r] <= 0).all()  # both spheres' cores stay

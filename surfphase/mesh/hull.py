@@ -83,8 +83,9 @@ def elliptic_hull_distance(
     Returns:
         (nx, ny, nz) float64: per voxel that both views give one id, its distance to
         that bubble's ellipse in its epipolar slice,
-        ``(√((q − p)ᵀ M⁻¹ (q − p)) − 1)·√(tr M / 2)``; ``−inf`` (no constraint)
-        elsewhere and in slices where no ellipse fits.
+        ``(√((q − p)ᵀ M⁻¹ (q − p)) − 1)·√(tr M / 2)``; ``+inf`` where the two views
+        see two different ids (a ghost crossing of their silhouettes' rays); ``−inf``
+        (no constraint) elsewhere and in slices where no ellipse fits.
     """
     axes = [np.asarray(origin, np.float64)[i] + voxel * np.arange(shape[i]) for i in range(3)]
     X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -100,6 +101,9 @@ def elliptic_hull_distance(
         ids.append(i)
     own = np.where((ids[0] == ids[1]) & (ids[0] >= 0), ids[0], -1)
     out = np.full(len(X), -np.inf)
+    # Where the two views see two different bubbles, the rays of one cross the other's:
+    # a ghost of the visual hull, inside no bubble.
+    out[(ids[0] >= 0) & (ids[1] >= 0) & (ids[0] != ids[1])] = np.inf
     c0, c1 = cameras[0].center, cameras[1].center
     u = (c1 - c0) / np.linalg.norm(c1 - c0)  # the baseline, which every epipolar plane holds
     n1 = np.cross(u, [0.0, 1.0, 0.0])
