@@ -128,3 +128,8 @@ def test_ghosts_where_the_views_see_two_bubbles_are_carved():
     same = (seen[0] >= 0) & (seen[0] == seen[1])
     assert (ell[same & (near > 2 * r)] > 0).all()  # the hull's corners
     assert (ell[near < 0.7 * r] <= 0).all()  # both spheres' cores stay
+    out = np.zeros(len(P), bool)
+    for cam in cams:
+        uv = np.round(cam.project(P, distort=False)).astype(int)
+        out |= (uv[:, 0] < 0) | (uv[:, 0] >= cam.width) | (uv[:, 1] < 0) | (uv[:, 1] >= cam.height)
+    assert out.any() and np.isposinf(ell[out]).all()  # outside a view's image: carved

@@ -84,8 +84,9 @@ def elliptic_hull_distance(
         (nx, ny, nz) float64: per voxel that both views give one id, its distance to
         that bubble's ellipse in its epipolar slice,
         ``(√((q − p)ᵀ M⁻¹ (q − p)) − 1)·√(tr M / 2)``; ``+inf`` where the two views
-        see two different ids (a ghost crossing of their silhouettes' rays); ``−inf``
-        (no constraint) elsewhere and in slices where no ellipse fits.
+        see two different ids (a ghost crossing of their silhouettes' rays) and outside
+        either view's image (seen twice nowhere); ``−inf`` (no constraint) elsewhere and
+        in slices where no ellipse fits.
     """
     axes = [np.asarray(origin, np.float64)[i] + voxel * np.arange(shape[i]) for i in range(3)]
     X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -96,7 +97,7 @@ def elliptic_hull_distance(
         z = cam.world_to_camera(X)[:, 2]
         uv = np.round(cam.project(X, distort=False)).astype(np.int64)
         seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        i = np.full(len(X), -1, np.int64)
+        i = np.full(len(X), -2, np.int64)  # −2: outside this view's image
         i[seen] = lab[uv[seen, 1], uv[seen, 0]]
         ids.append(i)
     own = np.where((ids[0] == ids[1]) & (ids[0] >= 0), ids[0], -1)
@@ -104,6 +105,9 @@ def elliptic_hull_distance(
     # Where the two views see two different bubbles, the rays of one cross the other's:
     # a ghost of the visual hull, inside no bubble.
     out[(ids[0] >= 0) & (ids[1] >= 0) & (ids[0] != ids[1])] = np.inf
+    # Outside a view's image nothing is seen twice: no bubble can be reconstructed there
+    # (the fused volume is solid where no view sees it).
+    out[(ids[0] == -2) | (ids[1] == -2)] = np.inf
     c0, c1 = cameras[0].center, cameras[1].center
     u = (c1 - c0) / np.linalg.norm(c1 - c0)  # the baseline, which every epipolar plane holds
     n1 = np.cross(u, [0.0, 1.0, 0.0])
