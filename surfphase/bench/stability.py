@@ -10,7 +10,8 @@ range: ~6 grey levels of 16 bits) added. The noisy ``bubbles.csv`` is matched to
 reference one frame by frame (Hungarian on the
 centroids, gate 0.5 mm) and the changes of centroid and velocity are reported, mean and
 worst, leaving out each bubble's frames within ``event_margin`` frames of a merge or a
-split it takes part in (either run's ``masks/events.csv``), where a last-bit change may
+split it takes part in (each run's own ``masks/events.csv``: the runs' ids may differ,
+so rows are matched on position first), where a last-bit change may
 legitimately move the frame a merge is detected at. The target: the worst velocity
 change below 1 % of the session's mean bubble speed.
 """
@@ -62,19 +63,38 @@ def event_bubble_frames(events_csv: Path, margin: int) -> set[tuple[int, int]]:
     return out
 
 
-def track_changes(ref: pd.DataFrame, noisy: pd.DataFrame, skip: set[tuple[int, int]]) -> dict:
-    """Centroid (m) and velocity (m/s) changes of matched bubble-frames, ids ≥ 1, but the
-    ``skip`` ``(frame, bubble)`` pairs (of either table); plus the reference's mean speed
-    and the unmatched counts."""
+def track_changes(
+    ref: pd.DataFrame,
+    noisy: pd.DataFrame,
+    skip_ref: set[tuple[int, int]],
+    skip_noisy: set[tuple[int, int]] | None = None,
+) -> dict:
+    """Centroid (m) and velocity (m/s) changes of matched bubble-frames, ids ≥ 1; plus
+    the reference's mean speed and the unmatched counts.
+
+    The two tables are matched frame by frame on position first (their ids may differ:
+    ids are numbered in order of appearance); a matched pair is then left out when
+    either side's ``(frame, bubble)`` is in its own run's skip set (``skip_ref``,
+    ``skip_noisy``, default the same); a reference row without a match within the gate
+    counts as unmatched unless it is in ``skip_ref``."""
     from surfphase.eval.velocity import match_bubbles
 
-    def keep(t: pd.DataFrame) -> pd.DataFrame:
-        pairs = zip(t["frame"].astype(int), t["bubble"].astype(int), strict=True)
-        near = np.array([p in skip for p in pairs], dtype=bool)
-        return t[(t["bubble"] >= 1).to_numpy() & ~near]
+    skip_noisy = skip_ref if skip_noisy is None else skip_noisy
 
-    r, n = keep(ref), keep(noisy)
+    def in_skip(frames, bubbles, skip) -> np.ndarray:
+        pairs = zip(np.asarray(frames, int), np.asarray(bubbles, int), strict=True)
+        return np.array([p in skip for p in pairs], dtype=bool)
+
+    r, n = ref[ref["bubble"] >= 1], noisy[noisy["bubble"] >= 1]
     m = match_bubbles(n, r, max_dist=GATE_M)
+    matched_ref = set(zip(m["frame"].astype(int), m["gt_bubble"].astype(int), strict=True))
+    if len(m):
+        m = m[
+            ~in_skip(m["frame"], m["bubble"], skip_noisy)
+            & ~in_skip(m["frame"], m["gt_bubble"], skip_ref)
+        ]
+    r = r[~in_skip(r["frame"], r["bubble"], skip_ref)]
+    n_unmatched = int(sum(p not in matched_ref for p in zip(r["frame"], r["bubble"], strict=True)))
     dv = m["abs_error_mps"].to_numpy(np.float64)
     dv = dv[np.isfinite(dv)]
     speed = np.linalg.norm(r[["vx", "vy", "vz"]].to_numpy(np.float64), axis=1)
@@ -82,7 +102,7 @@ def track_changes(ref: pd.DataFrame, noisy: pd.DataFrame, skip: set[tuple[int, i
     out = {
         "bubble_frames_ref": int(len(r)),
         "matched": int(len(m)),
-        "unmatched_ref": int(len(r) - len(m)),
+        "unmatched_ref": n_unmatched,
         "mean_speed_mps": mean_speed,
         "centroid_mean_um": float(m["dist_m"].mean() * 1e6) if len(m) else float("nan"),
         "centroid_worst_um": float(m["dist_m"].max() * 1e6) if len(m) else float("nan"),
@@ -138,11 +158,10 @@ def run_stability(ref_dir: Path, work: Path, sessions: list[str] | None, noise: 
             raise FileNotFoundError(f"session {s}: no ingest in {ref_dir / 'results' / s}")
         ref_csv = perturbed_run(ref_dir, work / s / "clean", s, 0.0, seed, cores)
         noisy = perturbed_run(ref_dir, work / s / "noisy", s, noise, seed, cores)
-        skip = set()
-        for run in ("clean", "noisy"):
-            skip |= event_bubble_frames(work / s / run / "results" / s / "masks" / "events.csv",
-                                        margin)  # fmt: skip
-        row = {"session": s, **track_changes(pd.read_csv(ref_csv), pd.read_csv(noisy), skip)}
+        skip = [event_bubble_frames(work / s / run / "results" / s / "masks" / "events.csv",
+                                    margin) for run in ("clean", "noisy")]  # fmt: skip
+        changes = track_changes(pd.read_csv(ref_csv), pd.read_csv(noisy), *skip)
+        row = {"session": s, **changes}
         rows.append(row)
         log(f"{s}: worst velocity change {row['velocity_worst_mps']:.4f} m/s = "
             f"{row['velocity_worst_pct_of_speed']:.2f} % of the mean speed")  # fmt: skip
