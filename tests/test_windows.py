@@ -164,8 +164,8 @@ def test_workflow_windows_equal_a_single_job(tmp_path):
     settings = "".join(f"  {k}: {v}\n" for k, v in PARAMS.items())
     write_campaign_sheets(work, [("s1", "")], f"mesh:\n{settings}  window: 3\n")
     fit, ingest = write_fit(work / "results" / "s1", frames=4, session="s1")
-    # The mesh rules carve by the session's masks: here every pixel is foreground, so
-    # the carve leaves the fused volume as the single job without masks makes it.
+    # The mesh rules carve by the session's masks (here every pixel is the nucleation
+    # region); the single job gets the same masks.
     from surfphase.cameras import load_cameras
 
     (work / "results/s1/masks").mkdir()
@@ -182,7 +182,7 @@ def test_workflow_windows_equal_a_single_job(tmp_path):
         assert f"window {k} ({3 - 2 * k} frames)" in log, log
         assert not (work / f"results/s1/mesh_windows/{k}").exists()  # temporary
     single = tmp_path / "single"
-    run_mesh(fit, ingest, single, PARAMS, device="cpu")
+    run_mesh(fit, ingest, single, PARAMS, device="cpu", masks_dir=work / "results/s1/masks")
     out = tmp_path / "gathered"
     shutil.copytree(work / "results/s1/mesh", out, ignore=shutil.ignore_patterns(".snakemake*"))
     assert_same_meshes(single, out)

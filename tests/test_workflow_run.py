@@ -1,95 +1,23 @@
-"""The workflow end to end on a tiny synthetic campaign: results, bad input, resuming."""
+"""The workflow end to end on a tiny synthetic campaign: every stage's results, with and
+without refinement, and the campaign outputs of a partly failed run (bad input and
+resuming: test_workflow_faults)."""
 
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-
-from surfphase.synth.campaign import write_campaign
-
-ROOT = Path(__file__).resolve().parents[1]
-SESSIONS = ("session01", "session02")
-# Bad-input and resume tests drive the DAG up to the frame stacks: that is where a
-# session's input is read. The full run uses a very short fit.
-INGEST_TARGETS = [f"results/{s}/ingest" for s in SESSIONS]
-SHORT_FIT = (
-    "ingest:\n  scale: 0.25\n"
-    "fit:\n  iters_first: 15\n  iters_next: 4\n  n_init: 300\n  render_frames: 1\n"
-    "mesh:\n  voxels: 32\n  n_orbit: 3\n"
+from workflow_helpers import (
+    SESSIONS,
+    edit_sheet,
+    make_workdir,
+    sheet_value,
+    snakemake,
 )
-
-
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> Path:
-    """A tiny synthetic campaign with two sessions on one rig (generated once)."""
-    out = tmp_path_factory.mktemp("tiny") / "campaign"
-    write_campaign(out, preset="tiny", seed=3, sessions=2)
-    return out
-
-
-def make_workdir(tmp_path: Path, campaign: Path) -> Path:
-    """A Snakemake working directory whose config points at ``campaign``'s sheets."""
-    work = tmp_path / "work"
-    (work / "config").mkdir(parents=True)
-    shutil.copy(campaign / "sessions.tsv", work / "config" / "sessions.tsv")
-    shutil.copy(campaign / "rigs.tsv", work / "config" / "rigs.tsv")
-    for sheet in ("sessions.tsv", "rigs.tsv"):
-        text = (work / "config" / sheet).read_text()
-        lines = text.splitlines()
-        # Re-root the sheet's relative paths at the campaign folder.
-        head, rows = lines[0], lines[1:]
-        cols = head.split("\t")
-        path_cols = [i for i, c in enumerate(cols) if c.startswith("cam") or c in ("gt", "board")]
-        fixed = []
-        for row in rows:
-            cells = row.split("\t")
-            for i in path_cols:
-                if i < len(cells) and cells[i] and not os.path.isabs(cells[i]):
-                    cells[i] = str((campaign / cells[i]).resolve())
-            fixed.append("\t".join(cells))
-        (work / "config" / sheet).write_text("\n".join([head, *fixed]) + "\n")
-    (work / "config" / "config.yaml").write_text(
-        "sessions: config/sessions.tsv\nrigs: config/rigs.tsv\nresults: results\n"
-        "device: cpu\nthreads: 1\ncalibrate:\n  min_images: 6\n" + SHORT_FIT
-    )
-    return work
-
-
-def snakemake(work: Path, *args: str, **kw) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work)]
-    return subprocess.run(
-        [*cmd, "--cores", "2", *args], capture_output=True, text=True, timeout=900, **kw
-    )
-
-
-def sheet_value(path: Path, session: str, column: str) -> str:
-    lines = path.read_text().splitlines()
-    cols = lines[0].split("\t")
-    row = next(r.split("\t") for r in lines[1:] if r.split("\t")[0] == session)
-    return row[cols.index(column)]
-
-
-def edit_sheet(path: Path, session: str, column: str, value: str) -> None:
-    lines = path.read_text().splitlines()
-    cols = lines[0].split("\t")
-    i = cols.index(column)
-    out = [lines[0]]
-    for row in lines[1:]:
-        cells = row.split("\t")
-        if cells[0] == session:
-            cells[i] = value
-        out.append("\t".join(cells))
-    path.write_text("\n".join(out) + "\n")
 
 
 @pytest.fixture(scope="module")
@@ -125,93 +53,6 @@ def test_full_run_produces_every_stage(full_run: Path):
     table = pd.read_csv(work / "results/campaign/metrics.csv")
     assert len(table) == len(SESSIONS)
     assert "session01" in (work / "results/campaign/index.html").read_text()
-
-
-def add_session_copies(sheet: Path, source: str, names: list[str]) -> None:
-    """Append rows to ``sheet`` that copy ``source``'s row under new session ids."""
-    head, *rows = sheet.read_text().splitlines()
-    row = next(r for r in rows if r.split("\t")[0] == source)
-    extra = ["\t".join([n, *row.split("\t")[1:]]) for n in names]
-    sheet.write_text("\n".join([head, *rows, *extra]) + "\n")
-
-
-def test_bad_sessions_stop_only_themselves(tiny: Path, tmp_path: Path):
-    """Four sessions, each with its own fault, beside a healthy one, in one run: each
-    bad session's log names the session and the file at fault; session01 finishes.
-
-    session02: a missing video folder; session03: a rig the rigs sheet lacks;
-    session04: cam1 two frames short; session05: its rig's calibration has too few
-    images (the calibrate job fails, naming the rig and the folder)."""
-    work = make_workdir(tmp_path, tiny)
-    sheet = work / "config" / "sessions.tsv"
-    add_session_copies(sheet, "session02", ["session03", "session04", "session05"])
-    bad = str(tmp_path / "nowhere" / "cam1")
-    edit_sheet(sheet, "session02", "cam1", bad)
-    edit_sheet(sheet, "session03", "rig", "rig99")
-    src = Path(sheet_value(sheet, "session04", "cam1"))
-    short = tmp_path / "short_cam1"
-    shutil.copytree(src, short)
-    for f in sorted(short.iterdir())[-2:]:
-        f.unlink()
-    edit_sheet(sheet, "session04", "cam1", str(short))
-    rigs = work / "config" / "rigs.tsv"
-    lines = rigs.read_text().splitlines()
-    cols = lines[0].split("\t")
-    row = lines[1].split("\t")
-    few = tmp_path / "few_cam1"
-    few.mkdir()
-    for f in sorted(Path(row[cols.index("cam1")]).iterdir())[:3]:
-        shutil.copy(f, few / f.name)
-    row2 = list(row)
-    row2[0] = "rig02"
-    row2[cols.index("cam1")] = str(few)
-    rigs.write_text("\n".join([*lines, "\t".join(row2)]) + "\n")
-    edit_sheet(sheet, "session05", "rig", "rig02")
-    sessions = ["session01", "session02", "session03", "session04", "session05"]
-    r = snakemake(work, "--keep-going", *[f"results/{s}/ingest" for s in sessions])
-    assert r.returncode != 0
-    for s, expect in [
-        ("session02", [bad]),
-        ("session03", ["rig99", "rigs.tsv"]),
-        ("session04", [str(short)]),
-    ]:
-        log = (work / f"logs/ingest/{s}.log").read_text()
-        assert s in log
-        for e in expect:
-            assert e in log, log
-        assert not (work / f"results/{s}/ingest").exists()
-    log = (work / "logs/calibrate/rig02.log").read_text()
-    assert "rig02" in log and str(few) in log, log
-    assert not (work / "results/session05/ingest").exists()
-    # The healthy session finished.
-    assert (work / "results/session01/ingest/meta.json").exists()
-
-
-def test_killed_run_resumes_with_rerun_incomplete(tiny: Path, tmp_path: Path):
-    work = make_workdir(tmp_path, tiny)
-    cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work)]
-    proc = subprocess.Popen(
-        [*cmd, "--cores", "1", *INGEST_TARGETS],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
-    # Kill the whole process group as soon as the first ingest job has started.
-    deadline = time.time() + 300
-    while time.time() < deadline and not (work / "logs/ingest").exists():
-        time.sleep(0.2)
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
-    # The documented resume: release the lock the killed run left, rerun what is incomplete.
-    assert snakemake(work, "--unlock").returncode == 0
-    r = snakemake(work, "--rerun-incomplete", *INGEST_TARGETS)
-    assert r.returncode == 0, r.stdout + r.stderr
-    ref = make_workdir(tmp_path / "ref", tiny)
-    assert snakemake(ref, *INGEST_TARGETS).returncode == 0
-    for s in ("session01", "session02"):
-        a = np.load(work / f"results/{s}/ingest/cam0.npy")
-        b = np.load(ref / f"results/{s}/ingest/cam0.npy")
-        np.testing.assert_array_equal(a, b)
 
 
 def test_full_run_with_refinement(full_run: Path, tmp_path: Path):
@@ -308,40 +149,3 @@ def test_failed_session_leaves_a_campaign_table_and_page_of_the_others(
     }
     assert jobs["campaign_table"] == jobs["campaign_page"] == jobs["session_sheet"] == 1
     assert jobs["ingest"] == jobs["plots"] == 1  # session02's; session01 is done
-
-
-def test_status_tells_a_stale_lock_from_a_live_run(tiny: Path, tmp_path: Path, capsys):
-    """`surfphase run` killed with SIGKILL (with its Snakemake): while it runs, status
-    says so; afterwards it says the lock is stale and how to recover, and the next
-    `surfphase run` says the previous run was killed, releases the lock and resumes."""
-    from surfphase.cli import main
-    from surfphase.commands.run import lock_note
-
-    work = make_workdir(tmp_path, tiny)
-    target = INGEST_TARGETS[:1]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "surfphase", "run", "--campaign", str(work), "--cores", "1"]
-        + target,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
-    deadline = time.time() + 300
-    while time.time() < deadline and not (work / "logs/ingest").exists():
-        time.sleep(0.2)
-    live = lock_note(work)
-    os.killpg(proc.pid, signal.SIGKILL)
-    proc.wait()
-    assert live and live[0].startswith("note: Snakemake is running in this campaign (pid ")
-    assert main(["status", "--campaign", str(work)]) == 0
-    text = capsys.readouterr().out
-    assert "Snakemake is running" not in text
-    assert "note: stale lock: the last run was killed" in text
-    assert "`surfphase run` resumes it" in text and "snakemake --unlock --directory" in text
-    assert main(["run", "--campaign", str(work), "--cores", "2", *target]) == 0
-    out = capsys.readouterr().out
-    assert "The previous run (pid " in out and "was killed before it finished" in out
-    assert "Releasing its stale lock" in out
-    assert (work / f"{target[0]}/meta.json").exists()
-    assert not (work / ".surfphase/run.json").exists()
-    assert lock_note(work) == []  # the resumed run ended and released its lock
