@@ -1,5 +1,5 @@
-"""Shared pieces of the workflow tests (test_workflow_run, test_workflow_faults): the tiny
-campaign, a Snakemake working directory on it, sheet edits."""
+"""Shared pieces of the workflow tests (test_workflow_run, test_workflow_faults): a
+Snakemake working directory on the tiny campaign (conftest's ``tiny``), sheet edits."""
 
 from __future__ import annotations
 
