@@ -50,3 +50,30 @@ def test_a_still_speck_is_dropped_and_a_rising_bubble_kept():
     assert (inst["bubble"] == -1).sum() == 6 and (inst["bubble"] == 4).sum() == 6
     # 0 keeps every bubble.
     assert drop_static(labels, inst, table, fps=1000.0, min_speed_mps=0.0) == []
+
+
+def test_a_merged_bubble_both_views_saw_stays_where_its_views_disagree():
+    """Bubble 8 is born of a merge both views record, 9 of one only one view records:
+    where their centres disagree, 9 leaves the masks and 8 stays."""
+    from surfphase.masks.stage import drop_inconsistent, merged_in_every_view
+
+    events = pd.DataFrame(
+        {
+            "frame": [4, 4, 6],
+            "camera": ["cam0", "cam1", "cam0"],
+            "event": ["merge", "merge", "merge"],
+            "parents": ["2+3", "3+2", "5+6"],
+            "children": ["8", "8", "9"],
+        }
+    )
+    keep = merged_in_every_view(events, ["cam0", "cam1"])
+    assert keep == {8}
+    labels = {c: np.full((2, 6, 6), -1, np.int32) for c in ("cam0", "cam1")}
+    for lab in labels.values():
+        lab[:, :2, :2] = 8
+        lab[:, 4:, 4:] = 9
+    table = pd.DataFrame({"position": [0, 0], "bubble": [8, 9], "consistent": [False, False]})
+    inst = pd.DataFrame({"frame": [0, 0], "bubble": [8, 9]})
+    assert drop_inconsistent(labels, inst, table, keep) == 1
+    for lab in labels.values():
+        assert (lab[0] == 8).sum() == 4 and not (lab[0] == 9).any() and (lab[1] == 9).sum() == 4

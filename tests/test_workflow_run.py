@@ -46,12 +46,18 @@ def test_full_run_produces_every_stage(full_run: Path):
         metrics = json.loads((work / f"results/{s}/evaluate/metrics.json").read_text())
         assert metrics["velocity"]["method"]["matched"] > 0
         assert metrics["chamfer_mm"]
+        # Positions, velocities and the meshes' sizes in one table; their summary.
+        sized = pd.read_csv(work / f"results/{s}/evaluate/bubbles.csv")
+        assert len(sized) == len(bubbles) and {"volume_m3", "d_eq_m", "closed"} <= set(sized)
+        assert metrics["sizes"]["bubble_frames"] == int(
+            ((sized.bubble >= 1) & sized.volume_m3.notna()).sum()
+        )
         assert (work / f"results/{s}/report/velocity.png").exists()
         for rule in ("ingest", "mask", "fit", "mesh", "evaluate", "plots"):
             assert (work / f"logs/{rule}/{s}.log").exists()
             assert (work / f"benchmarks/{rule}/{s}.tsv").exists()
     table = pd.read_csv(work / "results/campaign/metrics.csv")
-    assert len(table) == len(SESSIONS)
+    assert len(table) == len(SESSIONS) and "sizes.d_eq_mm_mean" in table.columns
     assert "session01" in (work / "results/campaign/index.html").read_text()
 
 

@@ -218,9 +218,17 @@ def mesh_chamfer(
     With ``cameras``, only the samples :func:`in_all_views` are compared (``points_pred``
     and ``points_true`` say how many; ``whole_truth_mean_mm`` is ``mean_mm`` of all the
     samples, as without cameras); if either set is then empty, every distance is NaN
-    (nothing to compare in that frame)."""
+    (nothing to compare in that frame). A mesh without faces (a frame where nothing was
+    reconstructed) gives NaN distances too, with its ``points_*`` 0."""
     vp, fp = read_ply(pred_ply)
     vt, ft = read_ply(true_ply)
+    if len(fp) == 0 or len(ft) == 0:
+        nan = float("nan")
+        out = {"mean_mm": nan, "mean_sq_mm2": nan, "a_to_b_mm": nan, "b_to_a_mm": nan}
+        if cameras is None:
+            return out
+        return {**out, "points_pred": 0 if len(fp) == 0 else n,
+                "points_true": 0 if len(ft) == 0 else n, "whole_truth_mean_mm": nan}  # fmt: skip
     a, b = sample_surface(vp, fp, n, seed), sample_surface(vt, ft, n, seed + 1)
     if cameras is None:
         return chamfer(a, b)

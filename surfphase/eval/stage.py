@@ -34,8 +34,14 @@ Outputs in ``OUT`` (each written whole or not at all):
   baseline-matched bubbles against the reference, which scores the reference itself);
   ``stage1`` (with a stage-1 fit) and ``ablations`` ``{name: …}`` (with ablation fits):
   each ``fit`` (its folder), ``velocity`` (errors as the method's), ``heldout`` and
-  ``heldout_whole`` (as above) and ``reference2d`` (its errors against the 2D reference); non-finite numbers
-  are ``null``;
+  ``heldout_whole`` (as above) and ``reference2d`` (its errors against the 2D reference);
+  ``sizes`` (:func:`surfphase.eval.sizes.size_metrics`: the meshes' bubble-frames with a
+  volume, their mean and median equivalent diameter, mean volume, and with ground truth
+  the equivalent diameter's relative error against the matched true bubbles');
+  non-finite numbers are ``null``;
+* ``bubbles.csv`` — the fit's ``bubbles.csv`` with each bubble-frame's ``volume_m3``,
+  ``d_eq_m`` and ``closed`` from the meshes (``MESHES/bubble_sizes.csv``; NaN where it
+  has none): positions, velocities and sizes in one table;
 * ``baseline_bubbles.csv`` — the two-view centroid baseline (:mod:`.baseline`);
 * ``velocity_table.csv`` — one row per compared bubble-frame, column ``source``
   (``method``/``baseline``, and ``stage1`` / the ablation names with ground truth):
@@ -63,7 +69,7 @@ import pandas as pd
 
 from surfphase.cameras import Camera, load_cameras
 from surfphase.eval import baseline as bl
-from surfphase.eval import geometry, image_metrics, reference2d, regions, velocity
+from surfphase.eval import geometry, image_metrics, reference2d, regions, sizes, velocity
 from surfphase.io import atomic_write_json, atomic_write_text, stack_frame_indices
 
 METRIC_KEYS = ("l1", "psnr", "ssim")
@@ -383,6 +389,7 @@ def run_evaluate(
     base_cmp = base[base["frame"].isin(method["frame"].unique())]
     metrics["settings"]["frames_compared"] = int(base_cmp["frame"].nunique())
     tables = []
+    method_matches = None
     truth_by_mask_id = None
     truth = region_truth = None
     held: list[Camera] = []
@@ -400,6 +407,8 @@ def run_evaluate(
         for label, pred in (("method", method), ("baseline", base_cmp)):
             m = velocity.match_bubbles(keep(pred), truth, max_match_dist)
             metrics["velocity"][label] = velocity.velocity_errors(m)
+            if label == "method":
+                method_matches = m.copy()
             if label == "baseline":
                 # The truth under the masks' bubble ids (through the baseline's matches),
                 # to score the 2D reference itself.
@@ -461,8 +470,18 @@ def run_evaluate(
             metrics["stage1"] = res
         else:
             metrics.setdefault("ablations", {})[label] = res
+    # Per-bubble sizes from the meshes, beside the fit's positions and velocities.
+    size_csv = Path(meshes_dir) / "bubble_sizes.csv" if meshes_dir is not None else None
+    sizes_in = pd.read_csv(size_csv) if size_csv is not None and size_csv.is_file() else None
+    with_sizes = sizes.bubble_sizes_table(method, sizes_in)
+    truth_r = None
+    if gt_dir is not None:
+        gt_table = pd.read_csv(Path(gt_dir) / "bubbles.csv")
+        truth_r = gt_table[["frame", "bubble", "r_eq"]] if "r_eq" in gt_table else None
+    metrics["sizes"] = sizes.size_metrics(with_sizes, method_matches, truth_r)
     metrics = _finite(metrics)
     out_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out_dir / "bubbles.csv", with_sizes.to_csv(index=False, float_format="%.9g"))
     atomic_write_text(out_dir / "baseline_bubbles.csv", base.to_csv(index=False))
     table = pd.concat(tables, ignore_index=True) if tables else pd.DataFrame()
     atomic_write_text(out_dir / "velocity_table.csv", table.to_csv(index=False))

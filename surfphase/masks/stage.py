@@ -268,16 +268,34 @@ def frame_anchors(
     return anchors.anchor_table(cams, cents, frames, ap, cuts)
 
 
+def merged_in_every_view(events: pd.DataFrame, views: Sequence[str]) -> set[int]:
+    """Bubble ids born of a merge that every one of ``views`` records in ``events``
+    (``events.csv``'s rows: ``camera``, ``event``, ``children``)."""
+    if len(events) == 0:
+        return set()
+    rows = events[events["event"] == "merge"]
+    per = [
+        {int(c) for ch in rows.loc[rows["camera"] == v, "children"] for c in str(ch).split("+")}
+        for v in views
+    ]
+    return set.intersection(*per) if per else set()
+
+
 def drop_inconsistent(
-    labels: dict[str, np.ndarray], instances: pd.DataFrame, table: pd.DataFrame
+    labels: dict[str, np.ndarray],
+    instances: pd.DataFrame,
+    table: pd.DataFrame,
+    keep: set[int] = frozenset(),
 ) -> int:
     """Remove, in place, each (frame position, bubble) whose two views disagree
     (``consistent`` false in :func:`frame_anchors`' table, frames as positions) from every
     view's labels; return how many. ``instances`` gets ``bubble = -1`` there. A pair
     with a centre fitted to a border-cut outline (``cut``) that disagrees only loses
-    its centre: the fit, not the pairing, is the likelier fault."""
+    its centre: the fit, not the pairing, is the likelier fault. So do the bubbles of
+    ``keep``: a young merged bubble both views saw merge has its lobes fused differently
+    in each view, so its silhouettes' centres disagree, but it is a bubble."""
     cut = table["cut"].astype(bool) if "cut" in table else False
-    bad = table[~table["consistent"].astype(bool) & ~cut]
+    bad = table[~table["consistent"].astype(bool) & ~cut & ~table["bubble"].isin(sorted(keep))]
     for t, b in bad[["position", "bubble"]].itertuples(index=False):
         for lab in labels.values():
             lab[int(t)][lab[int(t)] == int(b)] = -1
@@ -364,7 +382,8 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
         anchor_tab = frame_anchors(stacks, bubble_labels, bgs, cameras, frames, p)
         pos = {int(f): k for k, f in enumerate(frames)}
         anchor_tab["position"] = [pos[int(f)] for f in anchor_tab["frame"]]
-        dropped = drop_inconsistent(bubble_labels, instances, anchor_tab)
+        merged = merged_in_every_view(events, list(stacks)[:2])
+        dropped = drop_inconsistent(bubble_labels, instances, anchor_tab, merged)
         static = drop_static(
             bubble_labels, instances, anchor_tab, fps, float(p["anchors"]["min_speed_mps"])
         )

@@ -159,8 +159,8 @@ def mesh_snapshots(
     speed_max: float | None = None,
     session: str = "",
 ) -> list[Path]:
-    """Snapshots of ``count`` meshes of ``mesh_dir`` (evenly spread over the frames, by
-    name) as ``out_dir/<frame:06d>.png`` (the folder is emptied of PNGs first).
+    """Snapshots of ``count`` meshes of ``mesh_dir`` (evenly spread over the frames with a
+    non-empty mesh, by name) as ``out_dir/<frame:06d>.png`` (the folder is emptied of PNGs first).
 
     ``speed_max`` (m/s) defaults to the one in ``mesh_dir/mesh.json``, else
     :data:`DEFAULT_SPEED_MAX`; returns the PNGs written.
@@ -169,6 +169,8 @@ def mesh_snapshots(
     if not mesh_dir.is_dir():
         raise FileNotFoundError(f"{mesh_dir}: session {session}: mesh folder not found")
     plys = sorted(p for p in mesh_dir.glob("*.ply") if p.stem.isdigit())
+    # Frames where nothing was reconstructed have an empty mesh: nothing to draw.
+    plys = [p for p in plys if len(read_ply(p)[1])]
     if speed_max is None:
         speed_max = DEFAULT_SPEED_MAX
         info = mesh_dir / "mesh.json"

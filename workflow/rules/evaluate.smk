@@ -48,6 +48,7 @@ rule evaluate:
         metrics=f"{RESULTS}/{{session}}/evaluate/metrics.json",
         baseline=f"{RESULTS}/{{session}}/evaluate/baseline_bubbles.csv",
         velocities=f"{RESULTS}/{{session}}/evaluate/velocity_table.csv",
+        bubbles=f"{RESULTS}/{{session}}/evaluate/bubbles.csv",
     params:
         surfphase=SURFPHASE,
         gt=lambda wc, input: f"--gt {shlex.quote(input.gt)}" if "gt" in input.keys() else "",
