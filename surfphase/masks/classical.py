@@ -272,14 +272,20 @@ def relative_contrast(
         if free.any():
             bg = bg * float(np.median(img[free] / np.maximum(bg[free], 1e-3)))
     c = (bg - img) / np.maximum(bg, 1e-3)
-    if signed:
-        c[bg < p["background_floor"]] = 0.0
-        return c.astype(np.float32)
-    # In front of a static dark structure a bubble shows as a dark ring *and* a core
-    # brighter than the structure: any departure from the reference counts there.
-    c[static] = np.abs(c[static])
     c[bg < p["background_floor"]] = 0.0
-    return np.clip(c, 0.0, 1.0).astype(np.float32)
+    c = c.astype(np.float32)
+    return c if signed else fold_contrast(c, static)
+
+
+def fold_contrast(signed: np.ndarray, static: np.ndarray | None) -> np.ndarray:
+    """(H, W) float32 contrast in [0, 1] from :func:`relative_contrast`'s signed one: in
+    front of a static dark structure (``static`` (H, W) bool) a bubble shows as a dark
+    ring *and* a core brighter than the structure, so any departure from the reference
+    counts there (its absolute value); elsewhere darkening only."""
+    c = np.array(signed, dtype=np.float32)
+    if static is not None:
+        c[static] = np.abs(c[static])
+    return np.clip(c, 0.0, 1.0)
 
 
 def smoothed(contrast: np.ndarray, params: Mapping | None = None) -> np.ndarray:
@@ -333,7 +339,11 @@ def contrast_noise(
     def sm(t: int) -> np.ndarray:
         return smoothed(relative_contrast(frames[t], p, background, signed=True), p)
 
-    diffs = [np.abs(sm(t + 1) - sm(t)) for t in starts.astype(int)]
+    diffs, last, last_t = [], None, -1
+    for t in starts.astype(int):
+        a = last if last_t == t else sm(t)  # consecutive pairs share a frame
+        last, last_t = sm(t + 1), t + 1
+        diffs.append(np.abs(last - a))
     sigma = 1.4826 * np.median(np.stack(diffs), axis=0) / np.sqrt(2.0)
     win = int(p["noise_window_px"])
     if win > 1:
@@ -509,11 +519,10 @@ def segment_frame(
         scores: (n,) float32 confidence, the mean relative contrast inside each instance.
     """
     p = {**CLASSICAL_DEFAULTS, **(params or {})}
-    contrast = relative_contrast(image, p, background)
-    detect = None
-    if noise is not None:
-        signed = relative_contrast(image, p, background, signed=True)
-        detect = detection_contrast(signed, None if background is None else background[1], p)
+    static = None if background is None else background[1]
+    signed = relative_contrast(image, p, background, signed=True)
+    contrast = fold_contrast(signed, static)
+    detect = None if noise is None else detection_contrast(signed, static, p)
     fg, cores = foreground_mask(
         contrast,
         p,
