@@ -242,7 +242,7 @@ def test_cli_writes_ply_per_frame_with_velocity(tmp_path, capsys):
             "--out",
             str(out),
             "--params-json",
-            '{"voxels": 40, "n_orbit": 5, "orbit_step_deg": 60}',
+            '{"surface": "fused", "voxels": 40, "n_orbit": 5, "orbit_step_deg": 60}',
             "--device",
             "cpu",
         ]

@@ -133,3 +133,87 @@ def test_ghosts_where_the_views_see_two_bubbles_are_carved():
         uv = np.round(cam.project(P, distort=False)).astype(int)
         out |= (uv[:, 0] < 0) | (uv[:, 0] >= cam.width) | (uv[:, 1] < 0) | (uv[:, 1] >= cam.height)
     assert out.any() and np.isposinf(ell[out]).all()  # outside a view's image: carved
+
+
+def _sphere_labels(cam, spheres: dict[int, tuple[np.ndarray, float]]) -> np.ndarray:
+    """(H, W) labels: the id of the sphere (centre m, radius m) whose surface the pixel
+    centre's ray meets first, else −1."""
+    vv, uu = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float64)
+    pix = np.stack([uu, vv, np.ones_like(uu)], -1).reshape(-1, 3)
+    d = pix @ np.linalg.inv(cam.K).T @ cam.R
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    out, best = np.full(len(d), -1, np.int32), np.full(len(d), np.inf)
+    for b, (c, r) in spheres.items():
+        o = cam.center - c
+        B, C = d @ o, o @ o - r**2
+        disc = B**2 - C
+        t = np.where(disc >= 0, -B - np.sqrt(np.maximum(disc, 0)), np.inf)
+        near = t < best
+        out[near], best[near] = b, t[near]
+    return out.reshape(cam.height, cam.width)
+
+
+@pytest.mark.parametrize(("focal", "ratio_tol"), [(3000.0, 0.05), (800.0, 0.15)])
+def test_hull_meshes_are_the_bubbles_each_on_its_own_grid(focal, ratio_tol):
+    """`mesh: surface: hull` on two spheres (radii 1 and 0.6 mm: 30 and 18 px in the
+    images at focal 3000 px, 8 and 5 px at 800): each mesh is closed, carries its
+    bubble's id; its volume is within 15 % of 4/3 π r³ (8 voxels per radius: +10 %),
+    its centre within 10 % of r, its extent along the views' bisector over its extent
+    across within ``ratio_tol`` of 1 (the visual hull's, cot 20° ≈ 2.7)."""
+    from surfphase.cameras import look_at
+    from surfphase.mesh.measure import is_closed, signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+
+    spheres = {3: (CENTRE + [-1.5e-3, 0, 0], 1e-3), 5: (CENTRE + [1.5e-3, 0.5e-3, 0], 0.6e-3)}
+    cams = []
+    for k, az in enumerate((-20.0, 20.0)):
+        a, e = np.radians(az), np.radians(6.0)
+        eye = CENTRE + 0.1 * np.array([np.sin(a) * np.cos(e), np.sin(e), -np.cos(a) * np.cos(e)])
+        cams.append(look_at(f"cam{k}", eye, CENTRE, focal, 240, 240))
+    labels = [_sphere_labels(c, spheres) for c in cams]
+    verts, faces, ids = hull_mesh_frame(cams, labels, mesh_params({"surface": "hull"}))
+    assert set(np.unique(ids)) == {3, 5}
+    for b, (c, r) in spheres.items():
+        mine = ids == b
+        keep = mine[faces].all(axis=1)
+        assert keep.sum() == mine[faces].any(axis=1).sum()  # no face joins two bubbles
+        remap = np.cumsum(mine) - 1
+        v, f = verts[mine], remap[faces[keep]]
+        assert is_closed(f)
+        vol = abs(signed_volume(v, f))
+        assert abs(vol / (4 / 3 * np.pi * r**3) - 1) < 0.15, vol / (4 / 3 * np.pi * r**3)
+        assert np.linalg.norm(0.5 * (v.min(0) + v.max(0)) - c) < 0.1 * r
+        ratio = np.ptp(v[:, 2]) / np.ptp(v[:, 0])  # bisector z, across x
+        assert abs(ratio - 1) < ratio_tol, ratio
+
+
+def test_marching_cubes_puts_a_plateau_of_zeros_outside():
+    """A ball of negative values inside a shell of exact zeros (a silhouette's grown
+    distance is 0 one pixel out) meshes as the ball (radius within a voxel), not as
+    sheets through the plateau."""
+    from surfphase.mesh.fuse import marching_cubes_mesh
+
+    voxel, n = 1e-4, 40
+    origin = np.zeros(3)
+    g = (np.arange(n) - n / 2) * voxel
+    r = np.sqrt(sum(a**2 for a in np.meshgrid(g, g, g, indexing="ij")))
+    sdf = (r - 8 * voxel).astype(np.float32)
+    sdf[(r > 8 * voxel) & (r < 14 * voxel)] = 0.0
+    verts, _ = marching_cubes_mesh(sdf, origin, voxel)
+    rad = np.linalg.norm(verts - origin - n / 2 * voxel, axis=1)
+    assert np.abs(rad - 8 * voxel).max() < voxel
+
+
+def test_hull_vertices_take_their_own_bubbles_velocity():
+    """A vertex gets the velocity of the nearest surfel of its own bubble, even when a
+    surfel of another bubble is nearer; a bubble without surfels gets NaN (unknown)."""
+    from surfphase.mesh.stage import bubble_vertex_velocities
+
+    verts = np.array([[0.0, 0, 0], [1e-3, 0, 0], [5e-3, 0, 0]])
+    vbub = np.array([1, 1, 2])
+    means = np.array([[2e-3, 0, 0], [1.1e-3, 0, 0], [9e-3, 0, 0]])
+    sbub = np.array([1, 3, 1])
+    vel = np.array([[0.1, 0, 0], [0.9, 0, 0], [0.2, 0, 0]])
+    out = bubble_vertex_velocities(verts, vbub, means, sbub, vel)
+    np.testing.assert_array_equal(out[:2], [[0.1, 0, 0], [0.1, 0, 0]])
+    assert np.isnan(out[2]).all()

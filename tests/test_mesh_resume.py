@@ -22,7 +22,9 @@ from surfphase.cameras import save_cameras
 from surfphase.mesh.stage import run_mesh, run_mesh_window
 
 # Coarse and quick (~0.3 s a frame); "session" colours couple every frame of a session.
+# The fused surface: these fits come without masks.
 PARAMS = {
+    "surface": "fused",
     "voxels": 24,
     "n_orbit": 3,
     "orbit_step_deg": 90,

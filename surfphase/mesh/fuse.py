@@ -144,6 +144,10 @@ def marching_cubes_mesh(
 
     if not (sdf.min() < 0 < sdf.max()):
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    # A voxel exactly on the level is outside: marching cubes meshes a plateau of exact
+    # zeros (a silhouette's distance is 0 one grown pixel out) as sheets of spurious
+    # surface, not as the boundary of the negative region.
+    sdf = np.where(sdf == 0, np.asarray(1e-6 * voxel, sdf.dtype), sdf)
     verts, faces, _, _ = marching_cubes(
         sdf, level=0.0, spacing=(voxel, voxel, voxel), gradient_direction="descent"
     )

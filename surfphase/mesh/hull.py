@@ -146,3 +146,102 @@ def elliptic_hull_distance(
             qf = np.einsum("ni,ij,nj->n", e, np.linalg.inv(M), e)
             out[sel] = (np.sqrt(qf) - 1.0) * np.sqrt(0.5 * np.trace(M))
     return out.reshape(shape)
+
+
+def bubble_spheres(
+    cameras: Sequence[Camera], labels: Sequence[np.ndarray]
+) -> dict[int, tuple[np.ndarray, float]]:
+    """Where each bubble is, roughly: per id ≥ 0 that both views' labels show, its
+    (3,) centre (metres, the two silhouettes' centroids triangulated) and its radius
+    (metres, the silhouettes' mean equivalent radius √(area/π) times depth / focal)."""
+    from surfphase.cameras import triangulate
+
+    lab0, lab1 = (np.asarray(lb) for lb in labels[:2])
+    out = {}
+    for b in sorted(set(np.unique(lab0)) & set(np.unique(lab1))):
+        if b < 0:
+            continue
+        uvs, areas = [], []
+        for lab in (lab0, lab1):
+            r, c = np.nonzero(lab == b)
+            uvs.append(np.array([[c.mean(), r.mean()]]))
+            areas.append(float(len(r)))
+        X = triangulate(list(cameras[:2]), uvs)[0]
+        radii = [
+            np.sqrt(a / np.pi)
+            * float(cam.world_to_camera(X[None])[0, 2])
+            / float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+            for cam, a in zip(cameras[:2], areas, strict=True)
+        ]
+        if np.all(np.isfinite(X)) and min(radii) > 0:
+            out[int(b)] = (X, float(np.mean(radii)))
+    return out
+
+
+def _cube(centre: np.ndarray, half: float, voxel: float) -> tuple[np.ndarray, tuple]:
+    n = int(np.ceil(2 * half / voxel)) + 1
+    return np.asarray(centre, np.float64) - half, (n, n, n)
+
+
+def _own_box(
+    origin: np.ndarray, shape: tuple, voxel: float, cameras, labels, b: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(lo, hi) corners (metres) of the voxel centres both views give id ``b``."""
+    axes = [origin[i] + voxel * np.arange(shape[i]) for i in range(3)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    own = np.ones(len(X), bool)
+    for cam, lab in zip(cameras[:2], labels[:2], strict=True):
+        lab = np.asarray(lab)
+        h, w = lab.shape
+        z = cam.world_to_camera(X)[:, 2]
+        uv = np.round(cam.project(X, distort=False)).astype(np.int64)
+        ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        hit = np.zeros(len(X), bool)
+        hit[ok] = lab[uv[ok, 1], uv[ok, 0]] == b
+        own &= hit
+    if not own.any():
+        return None
+    return X[own].min(axis=0), X[own].max(axis=0)
+
+
+def bubble_hull_volume(
+    cameras: Sequence[Camera],
+    labels: Sequence[np.ndarray],
+    b: int,
+    centre: np.ndarray,
+    radius: float,
+    voxels_per_radius: float,
+    trunc_voxels: float,
+) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """Signed distance volume of one bubble's elliptic hull on its own grid.
+
+    A coarse cube about ``centre`` (half-size the radius over the sine of half the
+    views' angle, enough for the visual hull's elongation along their bisector) finds
+    the voxels both views give id ``b``; a fine grid (``radius / voxels_per_radius``
+    voxels) over their box, with a margin, holds the distance: the elliptic hull's
+    (:func:`elliptic_hull_distance`) where both views see ``b``, the distance to the
+    silhouettes' visual hull elsewhere, clipped at ``trunc_voxels`` voxels.
+
+    Returns ``(sdf (nx, ny, nz) float32 m, origin (3,) m, voxel m)``, or None when no
+    voxel is seen as ``b`` by both views.
+    """
+    from surfphase.mesh.stage import silhouette_distance
+
+    own_labels = [np.where(np.asarray(lb) == b, b, -1) for lb in labels[:2]]
+    rays = [c - cam.center for cam, c in zip(cameras[:2], (centre, centre), strict=True)]
+    cosang = float(rays[0] @ rays[1] / (np.linalg.norm(rays[0]) * np.linalg.norm(rays[1])))
+    sin_half = np.sqrt(max(0.5 * (1.0 - cosang), 1e-4))
+    coarse = radius / 3.0
+    origin, shape = _cube(centre, radius * (1.5 + 1.2 / sin_half), coarse)
+    box = _own_box(origin, shape, coarse, cameras, own_labels, b)
+    if box is None:
+        return None
+    voxel = radius / float(voxels_per_radius)
+    margin = coarse + (float(trunc_voxels) + 2.0) * voxel
+    lo, hi = box[0] - margin, box[1] + margin
+    shape = tuple(int(np.ceil(s)) + 1 for s in (hi - lo) / voxel)
+    vis = silhouette_distance(lo, shape, voxel, list(cameras[:2]), [lb >= 0 for lb in own_labels])
+    ell = elliptic_hull_distance(lo, shape, voxel, cameras, own_labels)
+    trunc = float(trunc_voxels) * voxel
+    sdf = np.clip(np.maximum(vis, ell), -trunc, trunc).astype(np.float32)
+    return sdf, lo, voxel

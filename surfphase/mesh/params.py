@@ -34,5 +34,11 @@ DEFAULTS: dict = {
     # ellipse closest to a circle that both views' silhouettes bound (surfphase.mesh.hull;
     # a shape prior: a rising bubble is close to axisymmetric about the vertical).
     "ellipse_hull": True,
+    # What the surface is: "fused", the surfels' depth maps fused (TSDF) and carved by
+    # the hulls above; or "hull", each bubble's elliptic hull alone, on its own grid of
+    # hull_voxels_per_radius voxels per (silhouette-equivalent) radius, the surfels
+    # giving only the vertices' velocities (surfphase.mesh.hull.bubble_hull_volume).
+    "surface": "hull",
+    "hull_voxels_per_radius": 8.0,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }

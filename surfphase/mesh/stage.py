@@ -47,7 +47,7 @@ from surfphase.fit.outputs import load_surfels
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text, part_dir, replace_dir
 from surfphase.mesh.cleanup import clean_mesh, mesh_stats
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
-from surfphase.mesh.hull import elliptic_hull_distance
+from surfphase.mesh.hull import bubble_hull_volume, bubble_spheres, elliptic_hull_distance
 from surfphase.mesh.measure import bubble_sizes, vertex_bubbles
 from surfphase.mesh.params import DEFAULTS  # every setting, with its default
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
@@ -134,6 +134,83 @@ def mesh_frame(
         int(p["smooth_steps"]),
         int(p["max_hole_edges"]),
     )
+
+
+def hull_mesh_frame(
+    inputs: list[Camera],
+    labels: list[np.ndarray],
+    p: dict,
+    hints: dict[int, tuple[np.ndarray, float]] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mesh of one frame's bubbles as their elliptic hulls (``mesh: surface: hull``).
+
+    Every id that both input views' (H, W) labels show is meshed on its own grid
+    (:func:`surfphase.mesh.hull.bubble_hull_volume`, ``hull_voxels_per_radius``), cut at
+    the plate (``floor_y``) and cleaned. Where the silhouettes' centroids triangulate to
+    no point both views see (the nucleation region, id 0, can hold different pieces in
+    each view), ``hints`` (id → (3,) centre m, radius m; e.g. from the fit's surfels)
+    place the search instead. Returns (V, 3) vertices (m), (F, 3) faces and (V,) each
+    vertex's bubble id.
+    """
+    views = [c.undistorted() for c in inputs]
+    verts, faces, ids, n = [], [], [], 0
+    for b, sphere in bubble_spheres(views, labels).items():
+        vol = None
+        for centre, radius in [sphere] + ([hints[b]] if hints and b in hints else []):
+            vol = bubble_hull_volume(
+                views, labels, b, centre, radius,
+                float(p["hull_voxels_per_radius"]), float(p["trunc_voxels"]),
+            )  # fmt: skip
+            if vol is not None:
+                break
+        if vol is None:
+            continue
+        sdf, origin, voxel = vol
+        if p["floor_y"] is not None:
+            trunc = float(p["trunc_voxels"]) * voxel
+            sdf = cut_below(sdf, origin, voxel, float(p["floor_y"]), trunc)
+        v, f = marching_cubes_mesh(sdf, origin, voxel)
+        v, f = clean_mesh(
+            v, f, float(p["min_component_m"]), int(p["smooth_steps"]), int(p["max_hole_edges"])
+        )
+        if len(f):
+            verts.append(v)
+            faces.append(f + n)
+            ids.append(np.full(len(v), b, np.int64))
+            n += len(v)
+    if not verts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(ids)
+
+
+def surfel_spheres(means: np.ndarray, bubble: np.ndarray) -> dict[int, tuple[np.ndarray, float]]:
+    """Per bubble id with surfels ((N, 3) m, (N,) ids): the (3,) centre of their box
+    and half its diagonal (metres)."""
+    out = {}
+    for b in np.unique(bubble):
+        m = np.asarray(means)[np.asarray(bubble) == b]
+        lo, hi = m.min(axis=0), m.max(axis=0)
+        out[int(b)] = (0.5 * (lo + hi), max(0.5 * float(np.linalg.norm(hi - lo)), 1e-5))
+    return out
+
+
+def bubble_vertex_velocities(
+    verts: np.ndarray,
+    vertex_bubble: np.ndarray,
+    surfel_means: np.ndarray,
+    surfel_bubble: np.ndarray,
+    surfel_velocity: np.ndarray,
+) -> np.ndarray:
+    """(V, 3) velocity (m/s) of each vertex: that of the nearest surfel of its own bubble
+    ((V,) ids; surfels (N, 3) m, (N,) ids, (N, 3) m/s); NaN for a bubble the fit gave
+    no surfels (its speed is unknown, not zero)."""
+    out = np.full((len(verts), 3), np.nan)
+    for b in np.unique(vertex_bubble):
+        mine = np.flatnonzero(np.asarray(surfel_bubble) == b)
+        if mine.size:
+            sel = np.flatnonzero(vertex_bubble == b)
+            out[sel] = vertex_velocities(verts[sel], surfel_means[mine], surfel_velocity[mine])
+    return out
 
 
 def cut_below(
@@ -266,7 +343,14 @@ def _open_session(
     if "time_s" not in surfels or np.shape(surfels["time_s"]) != (n_frames,):
         raise ValueError(f"{surfels_path}: no time_s per frame (seconds), needed for the .pvd")
     masks, mask_paths = None, []
-    if masks_dir is not None and p["carve_px"] is not None:
+    if p["surface"] not in ("fused", "hull"):
+        raise ValueError(f"mesh: surface must be 'fused' or 'hull', got {p['surface']!r}")
+    if p["surface"] == "hull" and masks_dir is None:
+        raise ValueError(
+            f"session {session}: mesh: surface: hull meshes the masks' elliptic hulls, "
+            "and no masks folder was given (--masks)"
+        )
+    if masks_dir is not None and (p["carve_px"] is not None or p["surface"] == "hull"):
         masks = []
         for cam in inputs:
             path = Path(masks_dir) / f"{cam.name}_labels.npy"
@@ -343,7 +427,18 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
         a = surf["alive"][t]
         verts, faces = np.zeros((0, 3)), np.zeros((0, 3), np.int64)
         vel, vbub = np.zeros((0, 3)), np.zeros(0, np.int64)
-        if a.sum() >= 4:
+        if s.p["surface"] == "hull":
+            sb = surf["bubble"][t][a] if "bubble" in surf else np.full(int(a.sum()), -9)
+            verts, faces, vbub = hull_mesh_frame(
+                s.inputs,
+                [np.asarray(m[t]) for m in s.masks],
+                s.p,
+                surfel_spheres(surf["means"][t][a], sb),
+            )
+            vel = bubble_vertex_velocities(
+                verts, vbub, surf["means"][t][a], sb, surf["velocity"][t][a]
+            )
+        elif a.sum() >= 4:
             verts, faces = mesh_frame(
                 surf["means"][t][a],
                 surf["quats"][t][a],
@@ -384,7 +479,9 @@ def _write_meshes(records: list[dict], out: Path, session, device: str, p: dict)
     ``OUT/mesh.json`` of ``records``, whole or not at all."""
     if p["speed_max"] == "session":
         speeds = [
-            np.linalg.norm(r["velocity"], axis=1).max() for r in records if len(r["velocity"])
+            np.nanmax(np.linalg.norm(r["velocity"], axis=1))
+            for r in records
+            if np.isfinite(r["velocity"]).any()
         ]
         vmax = float(max(speeds)) if speeds and max(speeds) > 0 else 1.0
     else:
