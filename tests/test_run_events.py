@@ -109,3 +109,35 @@ def test_stage_order_names_the_workflows_rules(tmp_path: Path):
         rules |= set(re.findall(r"^([a-z_0-9]+) ", res.stdout, flags=re.M))
     assert set(STAGE_ORDER) <= rules, set(STAGE_ORDER) - rules
     assert rules - set(STAGE_ORDER) == {"all", "mesh_frame_count"}
+
+
+def test_status_shows_the_jobs_a_live_run_has_started(tmp_path: Path):
+    """A stage whose job started and has not ended is running, not failed or pending;
+    one that ended keeps the state Snakemake's summary gives it."""
+    from surfphase.runner.events import running_jobs
+    from surfphase.runner.status import format_status, mark_running
+
+    events = [
+        {"event": "job_info", "jobid": 1, "rule": "ingest", "unit": "s1", "log": []},
+        {"event": "job_info", "jobid": 2, "rule": "fit", "unit": "s1", "log": []},
+        {"event": "job_info", "jobid": 3, "rule": "ingest", "unit": "s2", "log": []},
+        {"event": "job_finished", "jobid": 1},
+        {"event": "job_error", "jobid": 3, "rule": "ingest", "log": ["logs/ingest/s2.log"]},
+    ]
+    assert [e["jobid"] for e in running_jobs(events)] == [2]
+
+    def cell(state):
+        return {"state": state, "outputs": 1, "logs": ["logs/x.log"] if state == "failed" else []}
+
+    table = {
+        "s1": {"ingest": cell("done"), "fit": cell("pending")},
+        "s2": {"ingest": cell("failed"), "fit": cell("pending")},
+    }
+    mark_running(table, running_jobs(events))
+    assert {u: {s: c["state"] for s, c in cells.items()} for u, cells in table.items()} == {
+        "s1": {"ingest": "done", "fit": "running"},
+        "s2": {"ingest": "failed", "fit": "pending"},
+    }
+    text = format_status(table, tmp_path)
+    assert text.splitlines()[1].split() == ["s1", "done", "running"]
+    assert "stages: 1 done, 1 failed, 0 outdated, 1 pending, 1 running" in text

@@ -12,7 +12,8 @@ from the job events Snakemake's logger-plugin interface gives SurfPhase's plugin
 ``surfphase status`` asks Snakemake (``--detailed-summary``: every output file of the
 campaign's DAG, its rule and whether it is up to date) and tells per session and stage
 whether it is done, failed (outputs missing, log present), outdated (code, params or
-inputs changed) or pending. It never re-implements the DAG.
+inputs changed) or pending; while ``surfphase run`` runs, the stages of the jobs its
+events say have started and not ended are running. It never re-implements the DAG.
 
 After a kill: ``status`` tells a stale lock (no Snakemake process works in the
 campaign) from a live run, and ``run`` says the previous run was killed, releases the
@@ -274,7 +275,8 @@ def register(subparsers) -> None:
         "status",
         help="which sessions and stages are done, failed, outdated or pending",
         description="Per session and stage: done, failed (see its log), outdated "
-        "(code, parameters or inputs changed: will rerun) or pending. Asks Snakemake.",
+        "(code, parameters or inputs changed: will rerun), pending, or running (a job "
+        "`surfphase run` has started). Asks Snakemake.",
     )
     _common(s)
     s.add_argument("--json", action="store_true", help="print the table as JSON")

@@ -49,6 +49,7 @@ from snakemake_interface_logger_plugins.common import LogEvent
 from snakemake_interface_logger_plugins.settings import LogHandlerSettingsBase
 
 PLUGIN = "surfphase"  # snakemake --logger surfphase
+EVENTS_FILE = Path(".surfphase") / "events.jsonl"  # in a campaign: its last run's events
 EVENTS_OPTION = "--logger-surfphase-events"
 _SUBMITTED = re.compile(r"^Job (\d+) has been submitted with \S+ jobid (\S+)")
 
@@ -189,6 +190,17 @@ class EventFile:
             except ValueError:
                 continue  # not ours: skip it rather than stop the run's display
         return events
+
+
+def running_jobs(events: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The ``job_info`` events of the jobs that neither finished nor failed since."""
+    running: dict[int, dict[str, Any]] = {}
+    for ev in events:
+        if ev.get("event") == "job_info":
+            running[int(ev["jobid"])] = ev
+        elif ev.get("event") in ("job_finished", "job_error"):
+            running.pop(int(ev["jobid"]), None)
+    return list(running.values())
 
 
 def logger_args(events: Path) -> list[str]:

@@ -21,10 +21,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from surfphase.runner.events import EventFile, logger_args
+from surfphase.runner.events import EVENTS_FILE, EventFile, logger_args
 from surfphase.runner.status import last_line, middle_cut
 
-EVENTS_FILE = Path(".surfphase") / "events.jsonl"  # in the campaign: the last run's events
 PLUGIN_PACKAGE = "snakemake_logger_plugin_surfphase"
 
 

@@ -1,5 +1,6 @@
 """Per session and stage of a campaign: done, failed, outdated or pending, as Snakemake's
-``--detailed-summary`` sees every output of the DAG (the DAG is never re-implemented)."""
+``--detailed-summary`` sees every output of the DAG (the DAG is never re-implemented),
+and running, as the job events of a live ``surfphase run`` say."""
 
 from __future__ import annotations
 
@@ -12,8 +13,9 @@ import textwrap
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from surfphase.runner.events import EVENTS_FILE, EventFile, running_jobs
 from surfphase.runner.locate import read_config, snakemake_base, tail_lines
-from surfphase.runner.locks import lock_note
+from surfphase.runner.locks import lock_note, lock_state, read_run_file
 
 # The workflow's rules (``snakemake --list-rules``, with ``mesh: window`` > 0 for
 # ``mesh_window``) in the order of docs/method.md §1; rules not listed are shown after
@@ -112,7 +114,9 @@ def campaign_status(
 
     A unit is a session, ``calib/<rig>`` or ``campaign``; a stage is a rule. A stage is
     failed if any output failed, else pending if any is pending, else outdated if any is
-    outdated, else done.
+    outdated, else done; while `surfphase run` runs in the campaign, a stage with a job
+    that its events file (:mod:`surfphase.runner.events`) says has started and not
+    ended is running instead of failed or pending.
     """
     results = str(read_config(camp).get("results", "results"))
     table: dict[str, dict[str, dict]] = {}
@@ -130,7 +134,19 @@ def campaign_status(
             cell["state"] = state
         if state == "failed":
             cell["logs"] += [log for log in o.logs if log not in cell["logs"]]
+    if read_run_file(camp) and lock_state(camp)["live"]:  # `surfphase run` runs now
+        mark_running(table, running_jobs(EventFile(camp / EVENTS_FILE).new()))
     return table
+
+
+def mark_running(table: dict[str, dict[str, dict]], jobs: list[dict]) -> None:
+    """Cells of ``table`` (see :func:`campaign_status`) with a running job (``job_info``
+    events of :func:`surfphase.runner.events.running_jobs`) become ``running`` when
+    their outputs are not all there (failed or pending)."""
+    for job in jobs:
+        cell = table.get(job.get("unit", ""), {}).get(job.get("rule", ""))
+        if cell and cell["state"] in ("failed", "pending"):
+            cell["state"], cell["logs"] = "running", []
 
 
 def stage_columns(table: dict[str, dict[str, dict]]) -> list[str]:
@@ -157,6 +173,7 @@ def format_status(table: dict[str, dict[str, dict]], camp: Path) -> str:
     lines.append(
         "stages: "
         + ", ".join(f"{counts.get(k, 0)} {k}" for k in ("done", "failed", "outdated", "pending"))
+        + (f", {counts['running']} running" if counts.get("running") else "")
     )
     for u in units:
         for s in stages:
