@@ -8,10 +8,11 @@ import json
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from surfphase.runner.events import EventFile, logger_args
-from surfphase.runner.progress import plugin_path, snakemake_env
+from surfphase.runner.progress import newest_log, plugin_path, snakemake_env
 from surfphase.runner.status import STAGE_ORDER
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,10 +32,14 @@ def test_plugin_writes_the_job_events_of_a_real_run(tmp_path: Path):
     (tmp_path / "Snakefile").write_text(TOY)
     events = tmp_path / "events.jsonl"
     cmd = [sys.executable, "-m", "snakemake", "--cores", "1", "--keep-going"]
+    started = time.time()
     res = subprocess.run(
         cmd + logger_args(events), cwd=tmp_path, env=snakemake_env(), capture_output=True
     )
     assert res.returncode == 1  # session b fails
+    # Snakemake's own log of this run, as its last lines name it.
+    log = newest_log(tmp_path, started)
+    assert log and f"Complete log(s): {log}" in res.stderr.decode()
     assert (tmp_path / "out/a.txt").is_file() and not (tmp_path / "out/b.txt").exists()
     evs = [json.loads(ln) for ln in events.read_text().splitlines()]
     info = {e["wildcards"].get("session"): e for e in evs if e["event"] == "job_info"}
@@ -93,20 +98,19 @@ def test_stage_order_names_the_workflows_rules(tmp_path: Path):
     (with `mesh: window` > 0 for the window rules), and every rule a job can run for
     a session or the campaign is ordered (`all` is no stage; the checkpoint that counts
     a session's frames for the windows is shown after the others)."""
-    window = tmp_path / "window.yaml"
+    window = tmp_path / "window.yaml"  # the window rules exist only with windows
     window.write_text("mesh:\n  window: 2\n")
-    rules: set[str] = set()
-    for extra in ([], [str(window)]):
-        res = subprocess.run(
-            [sys.executable, "-m", "snakemake", "-s", "Snakefile", "--list-rules"]
-            + ["--configfile", "config/config.yaml", *extra],
-            cwd=ROOT,
-            env=snakemake_env(),
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-        rules |= set(re.findall(r"^([a-z_0-9]+) ", res.stdout, flags=re.M))
+    res = subprocess.run(
+        [sys.executable, "-m", "snakemake", "-s", "Snakefile", "--list-rules"]
+        + ["--configfile", "config/config.yaml", str(window)],
+        cwd=ROOT,
+        env=snakemake_env(),
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    rules = set(re.findall(r"^([a-z_0-9]+) ", res.stdout, flags=re.M))
+    assert "mesh_window" in rules and "fit" in rules
     assert set(STAGE_ORDER) <= rules, set(STAGE_ORDER) - rules
     assert rules - set(STAGE_ORDER) == {"all", "mesh_frame_count"}
 
@@ -141,3 +145,18 @@ def test_status_shows_the_jobs_a_live_run_has_started(tmp_path: Path):
     text = format_status(table, tmp_path)
     assert text.splitlines()[1].split() == ["s1", "done", "running"]
     assert "stages: 1 done, 1 failed, 0 outdated, 1 pending, 1 running" in text
+
+
+def test_a_cluster_submission_is_an_event():
+    """The SLURM executor's submission message (its text, as
+    snakemake_executor_plugin_slurm logs it) is the one message read for an event."""
+    import logging
+
+    from surfphase.runner.events import event_of
+
+    msg = "Job 3 has been submitted with SLURM jobid 17 (log: /c/.snakemake/slurm_logs/x.log)."
+    rec = logging.LogRecord("snakemake", logging.INFO, __file__, 1, msg, None, None)
+    ev = event_of(rec)
+    assert ev == {"event": "submitted", "time": rec.created, "jobid": 3, "external_jobid": "17"}
+    other = logging.LogRecord("snakemake", logging.INFO, __file__, 1, "Select jobs", None, None)
+    assert event_of(other) is None
