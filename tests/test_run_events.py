@@ -45,7 +45,7 @@ def test_plugin_writes_the_job_events_of_a_real_run(tmp_path: Path):
     info = {e["wildcards"].get("session"): e for e in evs if e["event"] == "job_info"}
     assert set(info) == {"a", "b"}  # `all` never runs: its input failed
     for s in ("a", "b"):
-        assert info[s]["rule"] == "make" and info[s]["unit"] == s
+        assert info[s]["rule"] == "make" and info[s]["output"] == [f"out/{s}.txt"]
         assert info[s]["log"] == [f"logs/{s}.log"]
     finished = [e["jobid"] for e in evs if e["event"] == "job_finished"]
     errors = [e for e in evs if e["event"] == "job_error"]
@@ -122,9 +122,14 @@ def test_status_shows_the_jobs_a_live_run_has_started(tmp_path: Path):
     from surfphase.runner.status import format_status, mark_running
 
     events = [
-        {"event": "job_info", "jobid": 1, "rule": "ingest", "unit": "s1", "log": []},
-        {"event": "job_info", "jobid": 2, "rule": "fit", "unit": "s1", "log": []},
-        {"event": "job_info", "jobid": 3, "rule": "ingest", "unit": "s2", "log": []},
+        {"event": "job_info", "jobid": 1, "rule": "ingest", "output": ["res/s1/ingest"]},
+        {
+            "event": "job_info",
+            "jobid": 2,
+            "rule": "fit",
+            "output": ["res/s1/fit/a", "res/s1/fit/b"],
+        },
+        {"event": "job_info", "jobid": 3, "rule": "ingest", "output": ["res/s2/ingest"]},
         {"event": "job_finished", "jobid": 1},
         {"event": "job_error", "jobid": 3, "rule": "ingest", "log": ["logs/ingest/s2.log"]},
     ]
@@ -137,7 +142,7 @@ def test_status_shows_the_jobs_a_live_run_has_started(tmp_path: Path):
         "s1": {"ingest": cell("done"), "fit": cell("pending")},
         "s2": {"ingest": cell("failed"), "fit": cell("pending")},
     }
-    mark_running(table, running_jobs(events))
+    mark_running(table, running_jobs(events), "res")
     assert {u: {s: c["state"] for s, c in cells.items()} for u, cells in table.items()} == {
         "s1": {"ingest": "done", "fit": "running"},
         "s2": {"ingest": "failed", "fit": "pending"},

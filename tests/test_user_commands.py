@@ -240,7 +240,7 @@ def test_progress_lines():
             "jobid": 3,
             "rule": "ingest",
             "wildcards": {"s": "s1"},
-            "unit": "s1",
+            "output": ["results/s1/ingest/frames.txt"],
             "log": ["logs/ingest/s1.log"],
         },
         {"event": "submitted", "time": 1.5, "jobid": 3, "external_jobid": "17"},
@@ -276,7 +276,7 @@ def test_live_line_shows_running_jobs_and_their_logs(tmp_path):
             "jobid": 5,
             "rule": "fit",
             "wildcards": {"session": "a"},
-            "unit": "a",
+            "output": ["results/a/fit"],
             "log": ["logs/fit.log"],
         }
     )

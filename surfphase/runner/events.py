@@ -2,7 +2,7 @@
 
 Snakemake 9 passes every log record through its logger-plugin interface
 (``snakemake-interface-logger-plugins``), each with an ``event`` (``LogEvent``) and the
-event's fields as attributes: a job's rule, wildcards, log files and id when it is
+event's fields as attributes: a job's rule, wildcards, outputs, logs and id when it is
 scheduled (``job_info``), its id when it finishes (``job_finished``) or fails
 (``job_error``), the done/total counts (``progress``) and the job counts of the run
 (``run_info``). :class:`LogHandler` writes those, one JSON object per line, to the file
@@ -19,8 +19,8 @@ FILE ...``.
 
 Each line: ``{"event": ..., "time": seconds since the epoch, ...}`` with
 
-- ``job_info``: ``jobid``, ``rule``, ``wildcards`` (mapping), ``unit`` (the session,
-  ``calib/<rig>`` or ``campaign``), ``log`` (list of paths);
+- ``job_info``: ``jobid``, ``rule``, ``wildcards`` (mapping), ``output`` and ``log``
+  (lists of paths, relative to the working folder);
 - ``job_finished``: ``jobid``;
 - ``job_error``: ``jobid``, ``rule``, ``log``;
 - ``progress``: ``done``, ``total``;
@@ -54,17 +54,7 @@ EVENTS_OPTION = "--logger-surfphase-events"
 _SUBMITTED = re.compile(r"^Job (\d+) has been submitted with \S+ jobid (\S+)")
 
 
-def unit_of_wildcards(wildcards: dict[str, Any]) -> str:
-    """The part of the campaign a job works on: its ``session`` wildcard, ``calib/<rig>``
-    for a rig's calibration, else ``campaign`` (the campaign's own outputs, the prior)."""
-    if wildcards.get("session"):
-        return str(wildcards["session"])
-    if wildcards.get("rig"):
-        return f"calib/{wildcards['rig']}"
-    return "campaign"
-
-
-def _log_paths(value: Any) -> list[str]:
+def _paths(value: Any) -> list[str]:
     return [str(v) for v in (value or []) if str(v)]
 
 
@@ -80,8 +70,8 @@ def event_of(record: LogRecord) -> dict[str, Any] | None:
             "jobid": int(record.jobid),
             "rule": str(record.rule_name),
             "wildcards": wildcards,
-            "unit": unit_of_wildcards(wildcards),
-            "log": _log_paths(getattr(record, "log", None)),
+            "output": _paths(getattr(record, "output", None)),
+            "log": _paths(getattr(record, "log", None)),
         }
     if event == LogEvent.JOB_FINISHED:
         return {"event": "job_finished", **t, "jobid": int(record.job_id)}
@@ -91,7 +81,7 @@ def event_of(record: LogRecord) -> dict[str, Any] | None:
             **t,
             "jobid": int(record.jobid),
             "rule": str(record.rule_name),
-            "log": _log_paths(getattr(record, "log", None)),
+            "log": _paths(getattr(record, "log", None)),
         }
     if event == LogEvent.PROGRESS:
         return {"event": "progress", **t, "done": int(record.done), "total": int(record.total)}

@@ -32,7 +32,6 @@ class _Job:
     rule: str
     wildcards: str = ""
     log: str = ""
-    unit: str = ""
     started: float = field(default_factory=time.time)
 
 
@@ -73,7 +72,6 @@ class Progress:
                 rule=ev["rule"],
                 wildcards=wildcards_text(ev.get("wildcards") or {}),
                 log=(ev.get("log") or [""])[0],
-                unit=ev.get("unit", ""),
                 started=float(ev.get("time", time.time())),
             )
             self.jobs[int(ev["jobid"])] = job

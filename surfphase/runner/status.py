@@ -135,18 +135,20 @@ def campaign_status(
         if state == "failed":
             cell["logs"] += [log for log in o.logs if log not in cell["logs"]]
     if read_run_file(camp) and lock_state(camp)["live"]:  # `surfphase run` runs now
-        mark_running(table, running_jobs(EventFile(camp / EVENTS_FILE).new()))
+        mark_running(table, running_jobs(EventFile(camp / EVENTS_FILE).new()), results)
     return table
 
 
-def mark_running(table: dict[str, dict[str, dict]], jobs: list[dict]) -> None:
+def mark_running(table: dict[str, dict[str, dict]], jobs: list[dict], results: str) -> None:
     """Cells of ``table`` (see :func:`campaign_status`) with a running job (``job_info``
-    events of :func:`surfphase.runner.events.running_jobs`) become ``running`` when
-    their outputs are not all there (failed or pending)."""
+    events of :func:`surfphase.runner.events.running_jobs`; the job's unit is that of its
+    outputs, :func:`unit_of`) become ``running`` when not all their outputs are there
+    (failed or pending)."""
     for job in jobs:
-        cell = table.get(job.get("unit", ""), {}).get(job.get("rule", ""))
-        if cell and cell["state"] in ("failed", "pending"):
-            cell["state"], cell["logs"] = "running", []
+        for unit in {unit_of(path, results) for path in job.get("output") or []}:
+            cell = table.get(unit, {}).get(job.get("rule", ""))
+            if cell and cell["state"] in ("failed", "pending"):
+                cell["state"], cell["logs"] = "running", []
 
 
 def stage_columns(table: dict[str, dict[str, dict]]) -> list[str]:
