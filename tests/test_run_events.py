@@ -8,11 +8,10 @@ import json
 import re
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 from surfphase.runner.events import EventFile, logger_args
-from surfphase.runner.progress import newest_log, plugin_path, snakemake_env
+from surfphase.runner.progress import new_log, plugin_path, snakemake_env, snakemake_logs
 from surfphase.runner.status import STAGE_ORDER
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -32,13 +31,13 @@ def test_plugin_writes_the_job_events_of_a_real_run(tmp_path: Path):
     (tmp_path / "Snakefile").write_text(TOY)
     events = tmp_path / "events.jsonl"
     cmd = [sys.executable, "-m", "snakemake", "--cores", "1", "--keep-going"]
-    started = time.time()
+    before = snakemake_logs(tmp_path)
     res = subprocess.run(
         cmd + logger_args(events), cwd=tmp_path, env=snakemake_env(), capture_output=True
     )
     assert res.returncode == 1  # session b fails
     # Snakemake's own log of this run, as its last lines name it.
-    log = newest_log(tmp_path, started)
+    log = new_log(tmp_path, before)
     assert log and f"Complete log(s): {log}" in res.stderr.decode()
     assert (tmp_path / "out/a.txt").is_file() and not (tmp_path / "out/b.txt").exists()
     evs = [json.loads(ln) for ln in events.read_text().splitlines()]

@@ -53,6 +53,7 @@ class Progress:
         self.failed: list[_Job] = []
         self.last_status = 0.0
         self.log_file = ""
+        self.ran = False  # Snakemake built a DAG with jobs to run (run_info)
 
     def _print(self, text: str) -> None:
         if self.live:
@@ -91,7 +92,7 @@ class Progress:
         elif kind == "progress":
             self.done, self.total = int(ev["done"]), int(ev["total"])
         elif kind == "run_info":
-            self.total = int(ev["total"])
+            self.total, self.ran = int(ev["total"]), True
         elif kind == "submitted":
             self._print(f"{self._head()} queued as SLURM job {ev['external_jobid']}")
         elif kind == "nothing_to_do":
@@ -158,13 +159,14 @@ def snakemake_env() -> dict[str, str]:
     return env
 
 
-def newest_log(camp: Path, since: float) -> str:
-    """Snakemake's log file of the run that started at ``since`` ('' if it wrote none)."""
-    logs = [
-        p
-        for p in (camp / ".snakemake" / "log").glob("*.snakemake.log")
-        if p.stat().st_mtime >= since - 1
-    ]
+def snakemake_logs(camp: Path) -> set[Path]:
+    """Snakemake's log files in the campaign (one per run that got to its jobs)."""
+    return set((camp / ".snakemake" / "log").glob("*.snakemake.log"))
+
+
+def new_log(camp: Path, before: set[Path]) -> str:
+    """The log file Snakemake started since ``before`` (:func:`snakemake_logs`), or ''."""
+    logs = snakemake_logs(camp) - before
     return str(max(logs, key=lambda p: p.stat().st_mtime)) if logs else ""
 
 
@@ -221,7 +223,7 @@ def stream(cmd: list[str], camp: Path, verbose: bool, out=None, events: Path | N
     if verbose:
         return subprocess.call(cmd, env=snakemake_env())
     prog = Progress(camp, out=out)
-    started = time.time()
+    before = snakemake_logs(camp)
     proc = subprocess.Popen(
         cmd,
         stdout=subprocess.PIPE,
@@ -232,6 +234,7 @@ def stream(cmd: list[str], camp: Path, verbose: bool, out=None, events: Path | N
     )
     tail = _follow(proc, prog, EventFile(events) if events else None)
     rc = proc.returncode
-    prog.log_file = newest_log(camp, started)
+    if prog.ran:  # Snakemake names its log ("Complete log(s)") when it ran jobs
+        prog.log_file = new_log(camp, before)
     _summary(prog, camp, rc, tail, out)
     return rc
