@@ -9,8 +9,9 @@ surfels a fresh run starts from. Per frame ``t``:
    and registered to the new frame (:mod:`surfphase.fit.guidance`), merged bubbles
    dropped, new surfels for bubbles that appear or were dropped
    (:func:`surfphase.fit.seeding.spawn_bubbles`);
-2. fit (:func:`surfphase.fit.optimise.fit_frame`) — Adam on the frame's views; densify
-   and prune at frame 0 only (:func:`surfphase.fit.densify.frame_strategy`);
+2. fit (:func:`optimise_frame`, :func:`surfphase.fit.optimise.fit_frame`) — Adam on the
+   frame's views; densify and prune at frame 0 only
+   (:func:`surfphase.fit.densify.frame_strategy`);
 3. finish (:func:`finish_frame`) — bind every surfel to a bubble through the masks,
    record the frame (:class:`~surfphase.fit.record.FrameRecord`) and checkpoint it
    (:mod:`surfphase.fit.checkpoint`), so a killed job resumes at the last finished frame
@@ -128,8 +129,11 @@ def open_run(fit: FitInputs, ckpt: Path, device: torch.device) -> Run:
         )
     model.params = {k: v.detach().to(device).requires_grad_(True) for k, v in model.params.items()}
     views = ViewSet(data.cameras, background, fit.refined, device, dtype)
-    return Run(fit, ckpt, key, device, n_frames, start, model, gen, background, views, ids,
-               records)  # fmt: skip
+    return Run(
+        fit=fit, ckpt=ckpt, key=key, device=device, n_frames=n_frames, start=start,
+        model=model, generator=gen, background=background, views=views, ids=ids,
+        records=records,
+    )  # fmt: skip
 
 
 @dataclass
@@ -168,7 +172,9 @@ def prepare_frame(run: Run, t: int) -> Prepared:
     return out
 
 
-def fit_one(run: Run, t: int, observed: torch.Tensor, prep: Prepared) -> tuple[list[dict], int]:
+def optimise_frame(
+    run: Run, t: int, observed: torch.Tensor, prep: Prepared
+) -> tuple[list[dict], int]:
     """Optimise the surfels on frame ``t`` (``observed`` (C, H, W, D) its input images)
     → the logged curve rows and the number of steps."""
     data, p = run.fit.data, run.fit.p
@@ -241,7 +247,7 @@ def run_frames(fit: FitInputs, out_dir: Path, ckpt: Path, device: torch.device) 
         prep = prepare_frame(run, t)
         observed = torch.as_tensor(data.images(t), device=device)
         t_opt = time.perf_counter()
-        rows, iters = fit_one(run, t, observed, prep)
+        rows, iters = optimise_frame(run, t, observed, prep)
         seconds_optimise = time.perf_counter() - t_opt
         rec = finish_frame(
             run, t, observed, started=t0, curves=rows, iters=iters, spawned=prep.spawned,
