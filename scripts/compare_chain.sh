@@ -14,9 +14,10 @@
 #   LABEL      name of this run's results under STORE
 #   REFERENCE_LABEL  an earlier run under STORE to compare against (omit: no comparison)
 #
-# Environment: PYTHON (default /work/main/.venv/bin/python), THREADS (default 1),
-# FRAMES (session01's frame range, default 12:18: a merge and a new bubble), COMPARE_WITH (the checkout whose
-# surfphase.bench.compare does the comparison, default CHECKOUT).
+# Environment: PYTHON (default python; it needs snakemake and the project's packages),
+# THREADS (default 1), FRAMES (session01's frame range, default 12:18: a merge, a new
+# bubble), COMPARE_WITH (the checkout whose surfphase.bench.compare compares, default
+# CHECKOUT). The chain's sheet is written as CAMPAIGN/sessions_chain.tsv.
 #
 # Excluded from the comparison, and printed: the timing keys/columns of TIMING_KEYS,
 # the folders logs/, benchmarks/, .snakemake/, and the "key" of the checkpoint states
@@ -26,7 +27,7 @@
 set -euo pipefail
 
 if [ $# -lt 4 ]; then
-    sed -n 2,24p "$0"
+    sed -n 2,26p "$0"
     exit 2
 fi
 CHECKOUT=$(cd "$1" && pwd)
@@ -34,7 +35,7 @@ CAMPAIGN=$(cd "$2" && pwd)
 STORE=$3
 LABEL=$4
 REF=${5:-}
-PYTHON=${PYTHON:-/work/main/.venv/bin/python}
+PYTHON=${PYTHON:-python}
 THREADS=${THREADS:-1}
 FRAMES=${FRAMES:-12:18}
 COMPARE_WITH=$(cd "${COMPARE_WITH:-$CHECKOUT}" && pwd)
