@@ -51,3 +51,14 @@ def unit_float(stored: np.ndarray, bit_depth: int | None = None) -> np.ndarray:
 def to_uint16(frames: np.ndarray) -> np.ndarray:
     """[0, 1] floats → uint16 (value·65535, rounded; the lossless view format)."""
     return np.round(np.clip(frames, 0.0, 1.0) * 65535.0).astype(np.uint16)
+
+
+def unit_grey(frame: np.ndarray) -> np.ndarray:
+    """One stored frame (H, W) or (H, W, C) → (H, W) float32 grey in [0, 1]
+    (:func:`unit_float`, colour channels averaged)."""
+    out = unit_float(frame)
+    if out.ndim == 3:
+        out = out.mean(axis=2)
+    if out.ndim != 2:
+        raise ValueError(f"expected a (H, W) or (H, W, C) frame, got shape {np.shape(frame)}")
+    return out

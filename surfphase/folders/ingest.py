@@ -114,7 +114,7 @@ class IngestFolder:
     def native(self) -> IngestFolder | None:
         """The native-resolution folder ``meta["native"]`` names, read; None without."""
         sub = self.meta.get("native")
-        return read_ingest(self.path / str(sub), dtype=NATIVE_DTYPE) if sub else None
+        return read_ingest(self.path / str(sub)) if sub else None
 
 
 def _read_meta(meta_path: Path) -> tuple[dict, str, float | None]:
@@ -156,8 +156,7 @@ def _read_stack(path: Path, cam: Camera, declared: str | None, where: str) -> np
     check_frame_dtype(st.dtype, f"{path} ({where})")
     if declared is not None and st.dtype != np.dtype(declared):
         raise ValueError(
-            f"{path}: frames stored as {st.dtype}, but the ingest folder declares {declared} "
-            f"({where})"
+            f"{path}: frames stored as {st.dtype}, but meta.json declares {declared} ({where})"
         )
     if st.shape[1:3] != (cam.height, cam.width):
         raise ValueError(
@@ -167,9 +166,7 @@ def _read_stack(path: Path, cam: Camera, declared: str | None, where: str) -> np
     return st
 
 
-def read_ingest(
-    folder: str | Path, stacks: bool = True, min_cameras: int = 1, dtype=None
-) -> IngestFolder:
+def read_ingest(folder: str | Path, stacks: bool = True, min_cameras: int = 1) -> IngestFolder:
     """Read and validate an ingest folder (see the module table).
 
     Args:
@@ -177,8 +174,6 @@ def read_ingest(
         stacks: memory-map and check the frame stacks (False: cameras and metadata only,
             e.g. for the mesh stage, which reads no frames).
         min_cameras: the fewest cameras with frames the caller can work with.
-        dtype: the dtype the stacks must be stored in (default: ``meta.json``'s
-            ``dtype`` when it declares one, else any of float, uint8, uint16).
 
     Raises:
         FileNotFoundError: a missing ``cameras.json``, ``meta.json`` or frame stack.
@@ -208,7 +203,7 @@ def read_ingest(
         n = len(idx) if isinstance(idx, list) else 0
         frames = stack_frame_indices(meta, n, meta_path)
         return IngestFolder(folder, session, fps, meta, cameras, {}, frames)
-    declared = str(np.dtype(dtype)) if dtype is not None else meta.get("dtype")
+    declared = meta.get("dtype")  # ingest declares float32; hand-written folders may not
     out: dict[str, np.ndarray] = {}
     for name in names:
         path = stack_path(folder, name)
