@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from surfphase.eval.stage import read_table
+from surfphase.folders.fit import BUBBLE_COLUMNS, read_csv_table
 from surfphase.io import atomic_path, atomic_write_text
 from surfphase.report.tables import (
     SUMMARY_COLUMNS,  # noqa: F401 (re-exported: the campaign summary's columns)
@@ -38,13 +38,13 @@ from surfphase.report.tables import (
     summary_table,
 )
 
-FIT_COLUMNS = ("frame", "bubble", "x", "y", "z", "vx", "vy", "vz")
+FIT_COLUMNS = BUBBLE_COLUMNS
 GT_MAX_DIST = 1.5e-3  # metres: a fit bubble farther than this from every true one is unpaired
 
 
 def read_bubbles(path: str | os.PathLike, what: str) -> pd.DataFrame:
     """A bubble table (``frame, bubble, x, y, z, vx, vy, vz``, m and m/s) from a CSV."""
-    return read_table(Path(path), FIT_COLUMNS, what)
+    return read_csv_table(Path(path), FIT_COLUMNS, what)
 
 
 def pair_truth(
