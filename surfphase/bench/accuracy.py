@@ -325,20 +325,19 @@ def method_track_table(
     the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
     (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
     the table is a function of these)."""
-    from surfphase.fit.outputs import (
-        anchored_table,
-        bubble_table,
-        load_surfels,
-        nucleation_frames,
-        read_anchors,
-    )
+    from surfphase.fit.outputs import anchored_table, bubble_table, nucleation_frames, read_anchors
+    from surfphase.folders.fit import read_fit_surfels
+    from surfphase.folders.ingest import read_ingest
+    from surfphase.folders.masks import read_masks
 
-    arrays = load_surfels(fit_dir / "surfels.npz")
+    arrays = read_fit_surfels(fit_dir)
+    # The workflow's layout: results/<session>/{ingest,masks,fit}.
+    ingest = read_ingest(Path(fit_dir).parent / "ingest")
     masks = Path(fit_dir).parent / "masks"
-    anchors = read_anchors(masks / "anchors.csv", Path(fit_dir).parent.name)
+    anchors = read_anchors(masks / "anchors.csv", ingest.session)
     if anchors is None:
         return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order)
-    labels = [np.load(p, mmap_mode="r") for p in sorted(masks.glob("*_labels.npy"))]
+    labels = list(read_masks(masks, ingest.input_cameras(), ingest.session).labels.values())
     frames = np.asarray(arrays["frame"], dtype=np.int64)
     nuc = nucleation_frames(labels, frames)
     table = bubble_table(arrays, arrays["time_s"], frames)
