@@ -1,6 +1,6 @@
 """The ``evaluate`` stage of one session: metrics JSON, baseline and velocity tables.
 
-Inputs (folders of earlier stages):
+Inputs (folders of earlier stages, read through :mod:`surfphase.folders`):
 
 * ``INGEST`` — ``cameras.json`` (undistorted cameras), ``meta.json`` (``session``,
   ``fps``, ``frame_indices``), ``<cam>.npy`` frame stacks;

@@ -28,7 +28,9 @@ segmented and associated; the label stacks and ``instances.csv`` are then downsc
 * ``masks.json`` — session, backend, parameters used, counts.
 
 Every file is written under a temporary name and renamed, and the outputs are only
-moved into ``OUT`` once all of them are complete.
+moved into ``OUT`` once all of them are complete. The input is read by
+:func:`surfphase.folders.ingest.read_ingest`, the outputs written by
+:func:`surfphase.folders.masks.write_masks`.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ import numpy as np
 import pandas as pd
 
 from surfphase.folders.frames import unit_grey
-from surfphase.folders.ingest import read_ingest
+from surfphase.folders.ingest import read_ingest, stack_path
 from surfphase.folders.masks import write_masks
 from surfphase.masks import anchors, classical
 from surfphase.masks.associate import associate
@@ -87,7 +89,7 @@ def frame_spans(stack: np.ndarray, max_pixels: int = 65536) -> np.ndarray:
 def _where(meta: Mapping, ingest_dir: Path, name: str) -> str:
     """The camera's video and frame stack, for messages."""
     cam = (meta.get("cameras") or {}).get(name) if isinstance(meta.get("cameras"), dict) else None
-    stack = ingest_dir / f"{name}.npy"
+    stack = stack_path(ingest_dir, name)
     return f"video {cam['source']}, frames {stack}" if cam and cam.get("source") else str(stack)
 
 
