@@ -6,7 +6,8 @@ undistort them with the rig's calibration keeping the same intrinsics
 downscale with ``cv2.INTER_AREA``. Outputs in ``out``:
 
 * ``<cam>.npy``: float32 (frames, H, W), grey levels in [0, 1] (the source divided by
-  its full scale, 255 or 65535), readable memory-mapped with :func:`load_frames`;
+  its full scale, 255 or 65535), readable memory-mapped with
+  :func:`surfphase.folders.ingest.read_ingest`;
 * ``cameras.json``: the cameras the stacks are seen by (no distortion, cropped and
   scaled intrinsics, same extrinsics);
 * ``native/``, only when the frames are downscaled and ``native`` is on: the same
@@ -17,7 +18,8 @@ downscale with ``cv2.INTER_AREA``. Outputs in ``out``:
 * ``meta.json``: session, fps, frame indices in the source, crop/scale, and per camera
   the source path, kind, bit depth, size and count (written last).
 
-Frames are processed one at a time, so a long recording never sits in memory.
+Frames are processed one at a time, so a long recording never sits in memory. The
+folder's layout, reader and writer: :mod:`surfphase.folders.ingest`.
 """
 
 from __future__ import annotations
@@ -30,9 +32,18 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from surfphase.cameras import Camera, save_cameras
-from surfphase.io import atomic_path, atomic_write_json, load_stack
+from surfphase.cameras import Camera
+from surfphase.folders.frames import to_uint16, unit_float
+from surfphase.folders.ingest import (
+    NATIVE_DTYPE,
+    stack_writer,
+    write_cameras,
+    write_meta,
+    write_native_meta,
+)
 from surfphase.video import open_video
+
+NATIVE_DIR = "native"
 
 
 def parse_frames(spec: str | None, count: int, source: str = "") -> np.ndarray:
@@ -102,6 +113,109 @@ def auto_scale(width: int, height: int, fit_size: int) -> float:
     return min(1.0, float(fit_size) / float(max(width, height)))
 
 
+def _resolve_scale(session, cameras, videos, scale, crop, fit_size) -> float:
+    """The ingest scale: ``scale`` checked, or :func:`auto_scale` of the first camera."""
+    where = f"session {session}: "
+    if scale == "auto":
+        if not fit_size:
+            raise ValueError(f"{where}scale: auto needs fit_size (pixels)")
+        first = cameras.get(next(iter(videos)))
+        if first is None:
+            raise ValueError(f"{where}camera {next(iter(videos))} is not in the calibration")
+        c0 = _check_crop(crop, first.width, first.height, where)
+        scale = auto_scale(*((c0[2], c0[3]) if c0 else (first.width, first.height)), fit_size)
+    if not isinstance(scale, int | float) or not 0 < scale <= 1:
+        raise ValueError(f"{where}scale must be in (0, 1] or auto, not {scale!r}")
+    return scale
+
+
+def _open_sources(session: str, cameras: dict[str, Camera], videos: dict[str, Path]) -> dict:
+    """``{camera: opened recording}``, checked: calibrated, present, same frame counts,
+    calibrated size."""
+    where = f"session {session}: "
+    sources = {}
+    for name, path in videos.items():
+        if name not in cameras:
+            raise ValueError(
+                f"{where}camera {name} ({path}) is not in the calibration "
+                f"(cameras: {', '.join(cameras)})"
+            )
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"{where}recording of {name} not found: {path}")
+        try:
+            sources[name] = open_video(path)
+        except ValueError as e:
+            raise ValueError(f"{where}camera {name}: {e}") from e
+    names = list(sources)
+    counts = {name: sources[name].count for name in names}
+    if len(set(counts.values())) > 1:
+        # Synchronised cameras record the same number of frames: the shorter recording
+        # was most likely cut short (an interrupted copy) even if its file looks whole.
+        short = min(counts, key=counts.get)
+        listing = ", ".join(f"{n} {sources[n].path} has {counts[n]} frames" for n in names)
+        raise ValueError(
+            f"{where}cameras have different frame counts ({listing}): camera {short} "
+            f"{sources[short].path} may be truncated (cut short, e.g. by an interrupted "
+            "copy); copy it again, or give both recordings the same frames"
+        )
+    for name in names:
+        src, cam = sources[name], cameras[name]
+        if src.shape != (cam.height, cam.width):
+            raise ValueError(
+                f"{where}{name} {src.path} is {src.shape[1]}×{src.shape[0]} pixels but was "
+                f"calibrated at {cam.width}×{cam.height}"
+            )
+    return sources
+
+
+def _ingest_camera(src, cam: Camera, name: str, indices, crop, scale, out: Path, native: bool,
+                   where: str) -> tuple[Camera, Camera | None, dict]:  # fmt: skip
+    """Undistort, crop and downscale one camera's frames into ``out/<name>.npy`` (and
+    ``out/native/<name>.npy`` when ``native`` and downscaled).
+
+    Returns the output camera, the native camera (or None) and its ``meta.json`` entry.
+    """
+    c = _check_crop(crop, cam.width, cam.height, f"{where}{name}: ")
+    cw, ch = (c[2], c[3]) if c else (cam.width, cam.height)
+    size = (max(1, int(round(cw * scale))), max(1, int(round(ch * scale))))
+    map1, map2 = cv2.initUndistortRectifyMap(
+        cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1
+    )
+    keep_native = native and size != (cw, ch)
+    native_out = (
+        stack_writer(out / NATIVE_DIR, name, (len(indices), ch, cw), NATIVE_DTYPE)
+        if keep_native
+        else nullcontext()
+    )
+    with stack_writer(out, name, (len(indices), size[1], size[0])) as stack, native_out as full:
+        for k, frame in enumerate(src.read(indices)):
+            img = cv2.remap(
+                unit_float(frame, src.bit_depth), map1, map2,
+                interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE,
+            )  # fmt: skip
+            if c:
+                img = img[c[1] : c[1] + c[3], c[0] : c[0] + c[2]]
+            if full is not None:
+                full[k] = to_uint16(img)
+            if size != (img.shape[1], img.shape[0]):
+                img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+            stack[k] = img
+    entry = {
+        "source": str(src.path),
+        "source_kind": src.kind,
+        "source_bit_depth": src.bit_depth,
+        "source_size": [src.shape[1], src.shape[0]],
+        "source_count": src.count,
+        "source_fps": src.fps,
+        "size": list(size),
+        "count": len(indices),
+        "stack": f"{name}.npy",
+    }
+    native_cam = output_camera(cam, c, (cw, ch)) if keep_native else None
+    return output_camera(cam, c, size), native_cam, entry
+
+
 def ingest_session(
     session: str,
     cameras: dict[str, Camera],
@@ -138,134 +252,28 @@ def ingest_session(
         raise ValueError(f"{where}no camera recordings given")
     if not fps or fps <= 0:
         raise ValueError(f"{where}fps must be positive, not {fps!r}")
-    if scale == "auto":
-        if not fit_size:
-            raise ValueError(f"{where}scale: auto needs fit_size (pixels)")
-        first = cameras.get(next(iter(videos)))
-        if first is None:
-            raise ValueError(f"{where}camera {next(iter(videos))} is not in the calibration")
-        c0 = _check_crop(crop, first.width, first.height, where)
-        scale = auto_scale(*((c0[2], c0[3]) if c0 else (first.width, first.height)), fit_size)
-    if not isinstance(scale, int | float) or not 0 < scale <= 1:
-        raise ValueError(f"{where}scale must be in (0, 1] or auto, not {scale!r}")
-    sources = {}
-    for name, path in videos.items():
-        if name not in cameras:
-            raise ValueError(
-                f"{where}camera {name} ({path}) is not in the calibration "
-                f"(cameras: {', '.join(cameras)})"
-            )
-        path = Path(path)
-        if not path.exists():
-            raise FileNotFoundError(f"{where}recording of {name} not found: {path}")
-        try:
-            sources[name] = open_video(path)
-        except ValueError as e:
-            raise ValueError(f"{where}camera {name}: {e}") from e
-    names = list(sources)
-    counts = {name: sources[name].count for name in names}
-    if len(set(counts.values())) > 1:
-        # Synchronised cameras record the same number of frames: the shorter recording
-        # was most likely cut short (an interrupted copy) even if its file looks whole.
-        short = min(counts, key=counts.get)
-        listing = ", ".join(f"{n} {sources[n].path} has {counts[n]} frames" for n in names)
-        raise ValueError(
-            f"{where}cameras have different frame counts ({listing}): camera {short} "
-            f"{sources[short].path} may be truncated (cut short, e.g. by an interrupted "
-            "copy); copy it again, or give both recordings the same frames"
-        )
-    ref = sources[names[0]]
-    for name in names:
-        src, cam = sources[name], cameras[name]
-        if src.shape != (cam.height, cam.width):
-            raise ValueError(
-                f"{where}{name} {src.path} is {src.shape[1]}×{src.shape[0]} pixels but was "
-                f"calibrated at {cam.width}×{cam.height}"
-            )
+    scale = _resolve_scale(session, cameras, videos, scale, crop, fit_size)
+    sources = _open_sources(session, cameras, videos)
+    ref = sources[next(iter(sources))]
     indices = parse_frames(frames, ref.count, source=f"{where}{ref.path}")
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     out_cams: dict[str, Camera] = {}
     native_cams: dict[str, Camera] = {}
     per_cam = {}
-    for name in names:
-        src, cam = sources[name], cameras[name]
-        c = _check_crop(crop, cam.width, cam.height, f"{where}{name}: ")
-        cw, ch = (c[2], c[3]) if c else (cam.width, cam.height)
-        size = (max(1, int(round(cw * scale))), max(1, int(round(ch * scale))))
-        map1, map2 = cv2.initUndistortRectifyMap(
-            cam.K, cam.dist, None, cam.K, (cam.width, cam.height), cv2.CV_32FC1
+    for name, src in sources.items():
+        out_cams[name], nat, per_cam[name] = _ingest_camera(
+            src, cameras[name], name, indices, crop, scale, out, native, where
         )
-        full_scale = float(2**src.bit_depth - 1)
-        keep_native = native and size != (cw, ch)
-        native_path = atomic_path(out / "native" / f"{name}.npy") if keep_native else None
-        with atomic_path(out / f"{name}.npy") as tmp, native_path or nullcontext() as tmp_native:
-            stack = np.lib.format.open_memmap(
-                tmp, mode="w+", dtype=np.float32, shape=(len(indices), size[1], size[0])
-            )
-            full = None
-            if keep_native:
-                full = np.lib.format.open_memmap(
-                    tmp_native, mode="w+", dtype=np.uint16, shape=(len(indices), ch, cw)
-                )
-            for k, frame in enumerate(src.read(indices)):
-                img = frame.astype(np.float32) / np.float32(full_scale)
-                img = cv2.remap(
-                    img, map1, map2, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-                )
-                if c:
-                    img = img[c[1] : c[1] + c[3], c[0] : c[0] + c[2]]
-                if full is not None:
-                    full[k] = np.round(np.clip(img, 0.0, 1.0) * 65535.0).astype(np.uint16)
-                if size != (img.shape[1], img.shape[0]):
-                    img = cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-                stack[k] = img
-            stack.flush()
-            del stack
-            if full is not None:
-                full.flush()
-                del full
-                native_cams[name] = output_camera(cam, c, (cw, ch))
-        out_cams[name] = output_camera(cam, c, size)
-        per_cam[name] = {
-            "source": str(src.path),
-            "source_kind": src.kind,
-            "source_bit_depth": src.bit_depth,
-            "source_size": [src.shape[1], src.shape[0]],
-            "source_count": src.count,
-            "source_fps": src.fps,
-            "size": list(size),
-            "count": len(indices),
-            "stack": f"{name}.npy",
-        }
-    save_cameras(out / "cameras.json", out_cams, session=session)
+        if nat is not None:
+            native_cams[name] = nat
+    write_cameras(out, out_cams, session)
     if native_cams:
-        save_cameras(out / "native" / "cameras.json", native_cams, session=session)
-        native_meta = {"session": session, "fps": float(fps), "cameras": list(native_cams)}
-        native_meta["frame_indices"] = indices.tolist()
-        atomic_write_json(out / "native" / "meta.json", native_meta)
-    elif (out / "native").exists():
-        shutil.rmtree(out / "native")
-    meta = {
-        "session": session,
-        "fps": float(fps),
-        "frames": frames or "",
-        "frame_indices": indices.tolist(),
-        "scale": float(scale),
-        "crop": list(crop) if crop is not None else None,
-        "dtype": "float32",
-        "value_range": [0.0, 1.0],
-        "cameras": per_cam,
-        "native": "native" if native_cams else None,
-    }
-    atomic_write_json(out / "meta.json", meta)
-    return meta
-
-
-def load_frames(outdir: str | Path, cam: str) -> np.ndarray:
-    """Memory-mapped float32 frames (frames, H, W) in [0, 1] of ``cam`` from an ingest folder."""
-    path = Path(outdir) / f"{cam}.npy"
-    if not path.is_file():
-        raise FileNotFoundError(f"no ingested frames of {cam}: {path}")
-    return load_stack(path)
+        write_cameras(out / NATIVE_DIR, native_cams, session)
+        write_native_meta(out / NATIVE_DIR, session, fps, list(native_cams), indices)
+    elif (out / NATIVE_DIR).exists():
+        shutil.rmtree(out / NATIVE_DIR)
+    return write_meta(
+        out, session, fps, indices, per_cam, frames=frames, scale=scale, crop=crop,
+        native=NATIVE_DIR if native_cams else None,
+    )  # fmt: skip

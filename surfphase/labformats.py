@@ -295,28 +295,42 @@ def _open_mraw(path: Path) -> LabVideo:
 # --- Phantom CINE -----------------------------------------------------------------------
 
 
-def _open_cine(path: Path) -> LabVideo:
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: file not found")
-    size = path.stat().st_size
+@dataclass
+class _CineLayout:
+    """What a CINE file's headers say (the fields :func:`_open_cine` uses)."""
+
+    header_size: int
+    compression: int
+    first_image_no: int
+    count: int
+    width: int
+    height: int  # > 0: rows stored bottom-up
+    bit_count: int
+    bi_compression: int
+    bi_size_image: int
+    setup: bytes
+    setup_len: int
+    offsets: np.ndarray  # (count,) int64 byte offset of each image's annotation
+    last: int  # the image stored last
+    image_end: int | None  # the byte after it, when it could be read
+
+    def setup_uint(self, offset: int, fmt: str) -> int | None:
+        """An unsigned field of the SETUP block, None beyond its length."""
+        n = struct.calcsize(fmt)
+        if offset + n > self.setup_len:
+            return None
+        return struct.unpack_from("<" + fmt, self.setup, offset)[0]
+
+
+def _read_cine_layout(path: Path, size: int) -> _CineLayout:
+    """The CINE header, BITMAPINFOHEADER, SETUP and image offset table of ``path``."""
     with open(path, "rb") as f:
         head = f.read(_CINE_HEADER.size + _BITMAP_HEADER.size)
         if len(head) < _CINE_HEADER.size + _BITMAP_HEADER.size:
             raise ValueError(f"{path}: too short for a CINE file")
-        (
-            magic,
-            header_size,
-            compression,
-            _version,
-            _first_movie_image,
-            _total_count,
-            first_image_no,
-            count,
-            off_bitmap,
-            off_setup,
-            off_offsets,
-            _trigger,
-        ) = _CINE_HEADER.unpack_from(head, 0)
+        (magic, header_size, compression, _version, _first_movie_image, _total_count,
+         first_image_no, count, off_bitmap, off_setup, off_offsets, _trigger,
+         ) = _CINE_HEADER.unpack_from(head, 0)  # fmt: skip
         if magic != b"CI":
             raise ValueError(f"{path}: not a CINE file (starts with {magic!r}, not b'CI')")
         f.seek(off_bitmap)
@@ -330,13 +344,6 @@ def _open_cine(path: Path) -> LabVideo:
         setup = f.read(_SETUP_REALBPP + 4)
         setup_len = struct.unpack_from("<H", setup, _SETUP_LENGTH)[0] if len(setup) > 144 else 0
         setup_len = min(setup_len or len(setup), len(setup))
-
-        def setup_uint(offset: int, fmt: str) -> int | None:
-            n = struct.calcsize(fmt)
-            if offset + n > setup_len:
-                return None
-            return struct.unpack_from("<" + fmt, setup, offset)[0]
-
         f.seek(off_offsets)
         table = f.read(8 * count)
         if len(table) < 8 * count:
@@ -356,48 +363,63 @@ def _open_cine(path: Path) -> LabVideo:
             if annotation >= 8 and offsets[last] + annotation <= size:
                 f.seek(int(offsets[last]) + annotation - 4)
                 image_end = int(offsets[last]) + annotation + struct.unpack("<I", f.read(4))[0]
+    return _CineLayout(
+        header_size, compression, first_image_no, count, width, height, bit_count,
+        bi_compression, bi_size_image, setup, setup_len, offsets, last, image_end,
+    )  # fmt: skip
 
-    if compression not in (0, 2) or bi_compression != 0:
+
+def _check_cine(path: Path, size: int, c: _CineLayout) -> tuple[int, int, int]:
+    """Refuse what is not read (compression, pixel formats, empty or truncated files).
+
+    Returns (channels, bytes per sample, DIB row stride in bytes)."""
+    if c.compression not in (0, 2) or c.bi_compression != 0:
         raise ValueError(
-            f"{path}: compressed or packed CINE (compression {compression}, "
-            f"biCompression {bi_compression}) is not supported; save it as 16-bit"
+            f"{path}: compressed or packed CINE (compression {c.compression}, "
+            f"biCompression {c.bi_compression}) is not supported; save it as 16-bit"
         )
-    if bit_count not in (8, 16, 24, 48):
-        raise ValueError(f"{path}: {bit_count} bits per pixel is not supported (8, 16, 24, 48)")
-    if count < 1 or width < 1 or height == 0:
-        raise ValueError(f"{path}: empty recording ({count} images of {width}x{height})")
-    channels = 3 if bit_count in (24, 48) else 1
-    itemsize = 2 if bit_count in (16, 48) else 1
-    h, w = abs(height), width
+    if c.bit_count not in (8, 16, 24, 48):
+        raise ValueError(f"{path}: {c.bit_count} bits per pixel is not supported (8, 16, 24, 48)")
+    if c.count < 1 or c.width < 1 or c.height == 0:
+        raise ValueError(f"{path}: empty recording ({c.count} images of {c.width}x{c.height})")
+    channels = 3 if c.bit_count in (24, 48) else 1
+    itemsize = 2 if c.bit_count in (16, 48) else 1
+    h, w = abs(c.height), c.width
     stride = (w * channels * itemsize + 3) // 4 * 4  # DIB rows are padded to 4 bytes
-    if image_end is None or image_end > size:
-        whole = int(np.sum(offsets + 8 + stride * h <= size))
-        ends = f"ends at byte {image_end}" if image_end is not None else "is cut"
+    if c.image_end is None or c.image_end > size:
+        whole = int(np.sum(c.offsets + 8 + stride * h <= size))
+        ends = f"ends at byte {c.image_end}" if c.image_end is not None else "is cut"
         raise ValueError(
             f"{path}: truncated recording (cut short, e.g. by an interrupted copy): the "
-            f"file has {size} bytes, but image {last} of the {count} its header announces "
-            f"starts at byte {int(offsets[last])} and {ends} (about {whole} whole images "
+            f"file has {size} bytes, but image {c.last} of the {c.count} its header announces "
+            f"starts at byte {int(c.offsets[c.last])} and {ends} (about {whole} whole images "
             "present). Copy the recording again."
         )
-    real_bpp = setup_uint(_SETUP_REALBPP, "I")
-    cfa = setup_uint(_SETUP_CFA, "I")
+    return channels, itemsize, stride
+
+
+def _cine_bayer(path: Path, c: _CineLayout, channels: int) -> tuple[bool, int | None]:
+    """Whether the images are a colour sensor's raw mosaic, and the SETUP's CFA word."""
+    cfa = c.setup_uint(_SETUP_CFA, "I")
     pattern = (cfa or 0) & 0xFF
     bayer = pattern != 0 and channels == 1
-    if bayer and compression != 2:
+    if bayer and c.compression != 2:
         warnings.warn(
             f"{path}: the SETUP names a colour sensor (CFA {cfa:#x}) but the header says "
-            f"the {bit_count}-bit images are interpolated (compression {compression}); "
+            f"the {c.bit_count}-bit images are interpolated (compression {c.compression}); "
             "read as grey",
-            stacklevel=3,
+            stacklevel=4,
         )
         bayer = False
-    bit_depth = 8 * itemsize
-    if itemsize == 2 and real_bpp and 8 < real_bpp <= 16:
-        bit_depth = int(real_bpp)
-    fps = setup_uint(_SETUP_FRAMERATE, "I") or setup_uint(_SETUP_FRAMERATE16, "H")
+    return bayer, cfa
+
+
+def _cine_frames(path: Path, size: int, c: _CineLayout, channels: int, itemsize: int,
+                 stride: int, bayer: bool):  # fmt: skip
+    """The reader of image ``i`` (H, W) of a CINE file, grey, in the file's sample type."""
     mm = np.memmap(path, dtype=np.uint8, mode="r")
     dtype = np.dtype("<u2") if itemsize == 2 else np.dtype(np.uint8)
-    bottom_up = height > 0
+    h, w, bottom_up, offsets = abs(c.height), c.width, c.height > 0, c.offsets
 
     def frame(i: int) -> np.ndarray:
         off = int(offsets[i])
@@ -422,26 +444,41 @@ def _open_cine(path: Path) -> LabVideo:
         )
         return bayer_to_grey(grey) if bayer else grey
 
+    return frame
+
+
+def _open_cine(path: Path) -> LabVideo:
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: file not found")
+    size = path.stat().st_size
+    c = _read_cine_layout(path, size)
+    channels, itemsize, stride = _check_cine(path, size, c)
+    real_bpp = c.setup_uint(_SETUP_REALBPP, "I")
+    bayer, cfa = _cine_bayer(path, c, channels)
+    bit_depth = 8 * itemsize
+    if itemsize == 2 and real_bpp and 8 < real_bpp <= 16:
+        bit_depth = int(real_bpp)
+    fps = c.setup_uint(_SETUP_FRAMERATE, "I") or c.setup_uint(_SETUP_FRAMERATE16, "H")
     return LabVideo(
         path=path,
-        count=int(count),
-        shape=(h, w),
+        count=int(c.count),
+        shape=(abs(c.height), c.width),
         bit_depth=bit_depth,
         fps=float(fps) if fps else None,
         kind="cine",
         header={
-            "first_image_no": first_image_no,
-            "bit_count": bit_count,
+            "first_image_no": c.first_image_no,
+            "bit_count": c.bit_count,
             "real_bpp": real_bpp,
-            "bi_size_image": bi_size_image,
-            "header_size": header_size,
-            "compression": compression,
+            "bi_size_image": c.bi_size_image,
+            "header_size": c.header_size,
+            "compression": c.compression,
             "cfa": cfa,
             "colour": (
                 "bayer → grey (R+2G+B)/4" if bayer else ("bgr → grey" if channels == 3 else "mono")
             ),
         },
-        _frame=frame,
+        _frame=_cine_frames(path, size, c, channels, itemsize, stride, bayer),
     )
 
 

@@ -1,21 +1,8 @@
 """Novel views: the stage-1 fit rendered into orbit cameras about the scene centre.
 
-``OUT/`` (the ``render_views`` stage, written into a temporary folder and renamed, so it
-appears whole or not at all):
-
-==================  =====================  ===============================================
-file                shape / dtype          meaning
-==================  =====================  ===============================================
-``cameras.json``    surfphase.cameras      the orbit cameras ``orbit01`` … at the fit's
-                                           resolution; top level: ``session``, ``fps``,
-                                           ``frame`` (session frame indices),
-                                           ``scene_center`` (m), ``reference`` (camera)
-``<v>.npy``         (T, H, W) uint16       grey render of view ``v`` composited over
-                                           ``background.npy``, lossless (value·65535)
-``<v>_alpha.npy``   (T, H, W) float16      the render's accumulated alpha
-``<v>.mp4``         H.264, T frames        the same frames for people, at the session's fps
-``background.npy``  (H, W) float32         the mean of the input views' fit backgrounds
-==================  =====================  ===============================================
+``OUT/`` (the ``render_views`` stage): the views folder, whose layout, reader and writer
+are :mod:`surfphase.folders.views` (``cameras.json`` of the orbit cameras, per view
+``<v>.npy`` uint16 frames, ``<v>_alpha.npy``, ``<v>.mp4``; ``background.npy``).
 
 Orbit view k (1-based) is the reference input camera (the fit's first, unless named)
 rotated by k·``step_deg`` about the lab +y axis through the scene centre
@@ -26,7 +13,6 @@ optical axes (:func:`scene_center`), which is where a rig's cameras aim.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections.abc import Sequence
@@ -35,8 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from surfphase.cameras import Camera, load_cameras, orbit_cameras, save_cameras
-from surfphase.io import atomic_dir, atomic_path, save_npy
+from surfphase.cameras import Camera, load_cameras, orbit_cameras
+from surfphase.folders.ingest import read_ingest
+from surfphase.folders.views import read_views, write_views
 from surfphase.settings import check_keys
 from surfphase.views_params import DEFAULTS  # every setting, with its default
 
@@ -95,17 +82,9 @@ def orbit_view_cameras(
 
 
 def input_cameras(ingest_dir: str | os.PathLike) -> list[Camera]:
-    """The fit's input cameras: those of ``ingest/cameras.json`` with a frame stack, in
-    file order (the order of the fit's ``bg_images``), undistorted."""
-    ingest_dir = Path(ingest_dir)
-    path = ingest_dir / "cameras.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no cameras.json in the ingest folder")
-    cams = [c.undistorted() for n, c in load_cameras(path).items()
-            if (ingest_dir / f"{n}.npy").is_file()]  # fmt: skip
-    if len(cams) < 2:
-        raise ValueError(f"{ingest_dir}: need frame stacks of ≥ 2 cameras, found {len(cams)}")
-    return cams
+    """The fit's input cameras: those of the ingest folder with a frame stack, in stack
+    order (the order of the fit's ``bg_images``), undistorted."""
+    return read_ingest(ingest_dir, min_cameras=2).input_cameras()
 
 
 def fit_background(surfels: dict[str, np.ndarray], height: int, width: int) -> np.ndarray:
@@ -164,63 +143,6 @@ def render_frame(
     return image.astype(np.float32), a.astype(np.float32)
 
 
-def to_uint16(frames: np.ndarray) -> np.ndarray:
-    """[0, 1] floats → uint16 (value·65535, rounded; the lossless view format)."""
-    return np.round(np.clip(frames, 0.0, 1.0) * 65535.0).astype(np.uint16)
-
-
-def write_mp4(path: str | os.PathLike, frames: np.ndarray, fps: float) -> None:
-    """Write (T, H, W) grey frames in [0, 1] as an H.264 MP4 (yuv420p), whole or not at all.
-
-    H and W are padded to even sizes (H.264 with 4:2:0 chroma needs them) by repeating
-    the last row/column.
-    """
-    import imageio.v2 as imageio
-
-    v = np.round(np.clip(np.asarray(frames, np.float32), 0, 1) * 255).astype(np.uint8)
-    ph, pw = v.shape[1] % 2, v.shape[2] % 2
-    if ph or pw:
-        v = np.pad(v, ((0, 0), (0, ph), (0, pw)), mode="edge")
-    with atomic_path(path) as tmp:
-        w = imageio.get_writer(
-            str(tmp), format="FFMPEG", mode="I", fps=float(fps), codec="libx264",
-            pixelformat="yuv420p", macro_block_size=1, ffmpeg_log_level="error",
-            output_params=["-crf", "18"],
-        )  # fmt: skip
-        try:
-            for frame in v:
-                w.append_data(np.repeat(frame[..., None], 3, axis=2))
-        finally:
-            w.close()
-
-
-def read_mp4(path: str | os.PathLike) -> np.ndarray:
-    """(T, H, W) uint8 grey frames of an MP4 (first colour channel)."""
-    import imageio.v2 as imageio
-
-    r = imageio.get_reader(str(path), format="FFMPEG")
-    try:
-        return np.stack([np.asarray(f)[..., 0] for f in r])
-    finally:
-        r.close()
-
-
-def session_fps(ingest_dir: str | os.PathLike) -> tuple[str, float]:
-    """Session id and frame rate (frames/s) from ``ingest/meta.json``."""
-    path = Path(ingest_dir) / "meta.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no meta.json in the ingest folder")
-    try:
-        meta = json.loads(path.read_text())
-    except ValueError as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from e
-    session = str(meta.get("session", Path(ingest_dir).parent.name))
-    fps = float(meta.get("fps") or 0)
-    if not fps > 0:
-        raise ValueError(f"{path}: session {session}: fps must be positive")
-    return session, fps
-
-
 def render_views(
     surfels_path: str | os.PathLike,
     ingest_dir: str | os.PathLike,
@@ -247,8 +169,9 @@ def render_views(
     p = views_params(params)
     t0 = time.perf_counter()
     surfels = load_surfels(surfels_path)
-    session, fps = session_fps(ingest_dir)
-    inputs = input_cameras(ingest_dir)
+    ingest = read_ingest(ingest_dir, min_cameras=2)
+    session, fps = ingest.session, ingest.require_fps()
+    inputs = ingest.input_cameras()
     cams, center = orbit_view_cameras(inputs, p["n_views"], p["step_deg"], p["reference"])
     H, W = inputs[0].height, inputs[0].width
     background = fit_background(surfels, H, W)
@@ -259,19 +182,13 @@ def render_views(
         frames[:, t], alphas[:, t] = render_frame(surfels, t, cams, background, device)
         if log and ((t + 1) % 8 == 0 or t + 1 == T):
             log(f"session {session}: rendered frame {t + 1}/{T} of {len(cams)} views")
-    out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
-        save_npy(tmp / "background.npy", background)
-        for k, cam in enumerate(cams):
-            save_npy(tmp / f"{cam.name}.npy", to_uint16(frames[k]))
-            save_npy(tmp / f"{cam.name}_alpha.npy", alphas[k].astype(np.float16))
-            write_mp4(tmp / f"{cam.name}.mp4", frames[k], fps)
-        save_cameras(
-            tmp / "cameras.json", cams, session=session, fps=fps,
-            frame=np.asarray(surfels.get("frame", np.arange(T))).tolist(),
-            scene_center=center.tolist(), reference=p["reference"] or inputs[0].name,
-            n_views=int(p["n_views"]), step_deg=float(p["step_deg"]),
-        )  # fmt: skip
+    meta = {
+        "session": session, "fps": fps,
+        "frame": np.asarray(surfels.get("frame", np.arange(T))).tolist(),
+        "scene_center": center.tolist(), "reference": p["reference"] or inputs[0].name,
+        "n_views": int(p["n_views"]), "step_deg": float(p["step_deg"]),
+    }  # fmt: skip
+    write_views(out_dir, cams, frames, alphas, background, meta)
     return {
         "session": session,
         "views": [c.name for c in cams],
@@ -280,24 +197,6 @@ def render_views(
         "scene_center_m": center.tolist(),
         "seconds": round(time.perf_counter() - t0, 2),
     }
-
-
-def load_view(views_dir: str | os.PathLike, name: str) -> tuple[np.ndarray, float]:
-    """(T, H, W) float32 [0, 1] frames of view ``name`` and the session's fps."""
-    views_dir = Path(views_dir)
-    path = views_dir / f"{name}.npy"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such view in {views_dir}")
-    stack = np.load(path)
-    if stack.dtype != np.uint16 or stack.ndim != 3:
-        raise ValueError(f"{path}: expected a (T, H, W) uint16 stack, got {stack.dtype} "
-                         f"{stack.shape}")  # fmt: skip
-    cam_path = views_dir / "cameras.json"
-    try:
-        fps = float(json.loads(cam_path.read_text())["fps"])
-    except (OSError, ValueError, KeyError) as e:
-        raise ValueError(f"{cam_path}: no readable fps ({e})") from e
-    return stack.astype(np.float32) / 65535.0, fps
 
 
 def oracle_views(
@@ -326,15 +225,14 @@ def oracle_views(
     """
     import cv2
 
-    from surfphase.cameras import load_cameras
     from surfphase.io import atomic_path, atomic_write_json
 
     gt_dir, views_dir, out_dir = Path(gt_dir), Path(views_dir), Path(out_dir)
-    meta = json.loads((views_dir / "cameras.json").read_text())
-    orbit = list(load_cameras(views_dir / "cameras.json").values())
+    views = read_views(views_dir)
+    orbit = list(views.cameras.values())
     truth = load_cameras(gt_dir / "cameras.json")
     src = gt_dir / "views_clean" if (gt_dir / "views_clean").is_dir() else gt_dir / "views"
-    frames = [int(f) for f in meta["frame"]]
+    frames = [int(f) for f in views.frame]
     out_dir.mkdir(parents=True, exist_ok=True)
     info: dict = {"gt": str(gt_dir), "views": str(views_dir), "source": str(src), "offsets_m": {}}
     for cam in orbit:

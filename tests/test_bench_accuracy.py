@@ -11,6 +11,7 @@ import pytest
 from skimage.measure import marching_cubes
 
 from surfphase.bench import accuracy as acc
+from surfphase.bench import accuracy_metrics as am
 from surfphase.eval.geometry import sample_surface
 
 MM = 1e-3
@@ -52,11 +53,11 @@ def test_detection_precision_recall_hand_case():
     )
     seen = {0: {1, 2}, 1: {1}}
     attached = {0: {2}, 1: set()}
-    d = acc.detection(pred, truth, seen, attached)
+    d = am.detection(pred, truth, seen, attached)
     assert (d["reported"], d["real"]) == (5, 2)
     assert (d["free_seen"], d["free_found"]) == (2, 1)  # bubble 1 in frames 0 and 1
     assert d["precision"] == pytest.approx(0.4) and d["recall"] == pytest.approx(0.5)
-    wide = acc.detection(pred, truth, seen, attached, gate_r_eq=0.8)
+    wide = am.detection(pred, truth, seen, attached, gate_r_eq=0.8)
     assert (wide["real"], wide["free_found"]) == (3, 2)
 
 
@@ -73,13 +74,13 @@ def test_chamfer_is_brute_force_over_the_bubbles_both_views_see():
     v2, f2 = ellipsoid_mesh(c2, [0.8 * MM] * 3)
     verts, faces = np.concatenate([v1, v2]), np.concatenate([f1, f2 + len(v1)])
     rows = _truth_rows([1, 2], [c1, c2], [1 * MM, 0.8 * MM])
-    tf = acc.true_frame(rows, verts, faces, seen_ids={1}, n=4000, seed=0)
+    tf = am.true_frame(rows, verts, faces, seen_ids={1}, n=4000, seed=0)
     assert list(tf.seen) == [True, False]
     # Labels: each sample belongs to the sphere it was drawn on.
     on1 = np.abs(np.linalg.norm(tf.points - c1, axis=1) - 1 * MM) < 0.05 * MM
     assert np.array_equal(tf.label == 0, on1)
     pv, pf = ellipsoid_mesh(c1 + [0.2 * MM, 0, 0], [1.1 * MM] * 3, h=3e-5)
-    out = acc.frame_surface_metrics(tf, (pv, pf), np.array([0, 0, 1.0]), n=3000, seed=7)
+    out = am.frame_surface_metrics(tf, (pv, pf), np.array([0, 0, 1.0]), n=3000, seed=7)
     a = sample_surface(pv, pf, 3000, 7)
     b = tf.points[tf.label == 0]  # bubble 2 is seen by one view only: left out
     d = np.linalg.norm(a[:, None] - b[None], axis=-1)
@@ -98,18 +99,18 @@ def test_near_share_and_volume_on_concentric_spheres():
     c = np.array([0.0, 3 * MM, 0])
     verts, faces = ellipsoid_mesh(c, [1 * MM] * 3)
     rows = _truth_rows([1], [c], [1 * MM])
-    tf = acc.true_frame(rows, verts, faces, seen_ids={1}, n=20000)
+    tf = am.true_frame(rows, verts, faces, seen_ids={1}, n=20000)
     bis = np.array([1.0, 0, 0])
     for scale, share in ((1.15, 1.0), (1.35, 0.0)):
         mv, mf = ellipsoid_mesh(c, [scale * MM] * 3, h=3e-5)
-        out = acc.frame_surface_metrics(tf, (mv, mf), bis, n=5000)
+        out = am.frame_surface_metrics(tf, (mv, mf), bis, n=5000)
         assert out["near"] == share
         ((bid, vol_err, ratio),) = out["bubbles"]
         assert bid == 1 and vol_err == pytest.approx(scale**3 - 1, rel=0.03)
         assert ratio == pytest.approx(1.0, abs=0.03)
         assert out["chamfer_mm"] == pytest.approx(scale - 1, rel=0.1)
     # No mesh: nothing reconstructed, the bubble's volume error is −100 %.
-    out = acc.frame_surface_metrics(tf, None, bis)
+    out = am.frame_surface_metrics(tf, None, bis)
     assert math.isnan(out["chamfer_mm"]) and out["bubbles"][0][1] == -1.0
 
 
@@ -120,12 +121,12 @@ def test_extent_ratio_on_an_analytic_spheroid():
     R = np.stack([b, [0.0, 1.0, 0.0], across], axis=1)
     verts, faces = ellipsoid_mesh([0, 0, 0], [1.4 * MM, 1.0 * MM, 0.9 * MM], rot=R)
     pts = sample_surface(verts, faces, 40000, 0)
-    assert acc.extent_ratio(pts, b) == pytest.approx(1.4 / 0.9, rel=0.01)
-    assert acc.extent_ratio(pts, across) == pytest.approx(0.9 / 1.4, rel=0.01)
-    assert acc.extent_ratio(verts, b) == pytest.approx(1.4 / 0.9, rel=0.01)
+    assert am.extent_ratio(pts, b) == pytest.approx(1.4 / 0.9, rel=0.01)
+    assert am.extent_ratio(pts, across) == pytest.approx(0.9 / 1.4, rel=0.01)
+    assert am.extent_ratio(verts, b) == pytest.approx(1.4 / 0.9, rel=0.01)
     # The bisector of two cameras' viewing directions, horizontal.
     d0, d1 = np.array([0.0, -0.1, -1.0]), np.array([-np.sin(0.8), -0.1, -np.cos(0.8)])
-    bis = acc.horizontal_bisector([d0, d1])
+    bis = am.horizontal_bisector([d0, d1])
     np.testing.assert_allclose(bis, [-np.sin(0.4), 0, -np.cos(0.4)], atol=1e-12)
 
 
@@ -133,9 +134,9 @@ def test_mesh_components_and_volume():
     v1, f1 = ellipsoid_mesh([0, 0, 0], [1 * MM] * 3)
     v2, f2 = ellipsoid_mesh([5 * MM, 0, 0], [0.5 * MM, 0.5 * MM, 1 * MM])
     verts, faces = np.concatenate([v1, v2]), np.concatenate([f1, f2 + len(v1)])
-    comp = acc.mesh_components(verts, faces)
+    comp = am.mesh_components(verts, faces)
     assert len(np.unique(comp)) == 2
-    vols = sorted(abs(acc.signed_volume(verts, faces[comp == c])) for c in np.unique(comp))
+    vols = sorted(abs(am.signed_volume(verts, faces[comp == c])) for c in np.unique(comp))
     assert vols[0] == pytest.approx(4 / 3 * np.pi * 0.25e-9, rel=0.01)
     assert vols[1] == pytest.approx(4 / 3 * np.pi * 1e-9, rel=0.01)
 

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from surfphase.calib import calibrate_rig, calibrate_rig_detailed, load_board
-from surfphase.calib.solve import _mat_to_rt, _Problem
+from surfphase.calib.bundle import _mat_to_rt, _Problem
 from surfphase.cameras import load_cameras
 from surfphase.cli import main
 from surfphase.synth.charuco import board_yaml_dict, write_calibration_images

@@ -6,7 +6,7 @@ import hashlib
 from pathlib import Path
 
 import surfphase
-from surfphase.fit import stage as fit_stage
+from surfphase.fit import checkpoint as fit_checkpoint
 from surfphase.io import PACKAGE_ROOT, code_fingerprint, source_files
 from surfphase.mesh import stage as mesh_stage
 
@@ -22,13 +22,14 @@ def _hash(files: list[Path]) -> str:
 
 
 def test_fit_fingerprint_is_the_one_computed_before():
-    # As surfphase/fit/stage.py hashed the sources before the shared helper.
+    # As surfphase/fit/stage.py (now fit/checkpoint.py) hashed the sources before the
+    # shared helper.
     h = hashlib.sha256()
     for pkg in ("fit", "render"):
         for f in sorted((ROOT / pkg).rglob("*.py")):
             h.update(f.name.encode())
             h.update(f.read_bytes())
-    assert fit_stage._code_fingerprint() == h.hexdigest()
+    assert fit_checkpoint._code_fingerprint() == h.hexdigest()
 
 
 def test_mesh_fingerprint_is_the_one_computed_before():

@@ -6,7 +6,8 @@ import torch
 
 from surfphase.fit.densify import Densify2DGS, NoDensify, append_surfels, select_surfels
 from surfphase.fit.model import SurfelModel
-from surfphase.fit.stage import DEFAULTS, make_optimizer
+from surfphase.fit.optimise import make_optimizer
+from surfphase.fit.stage import DEFAULTS
 
 
 def _model(n=4, L=0.01):

@@ -77,7 +77,7 @@ def test_bad_inputs_name_the_file(tmp_path, toy):
 
 
 def test_read_merges_from_the_mask_events(tmp_path):
-    from surfphase.fit.stage import read_merges
+    from surfphase.fit.session import read_merges
 
     p = tmp_path / "events.csv"
     p.write_text(
@@ -119,7 +119,8 @@ def test_depth_bounds_pull_surfels_back_along_the_bisector(tmp_path):
     the views' mean direction comes back to k·r, one inside stays, and surfels of the
     nucleation region (bubble 0) are left where they are. The sphere's centre and
     radius come from the masks (centroid triangulation, equivalent radius)."""
-    from surfphase.fit.stage import SessionData, depth_bounds
+    from surfphase.fit.bounds import depth_bounds
+    from surfphase.fit.session import SessionData
 
     ingest, masks = make_toy_session(tmp_path, frames=1, size=40)
     data = SessionData(ingest, masks)

@@ -11,7 +11,8 @@ import tifffile
 
 from surfphase.cameras import load_cameras, look_at, save_cameras
 from surfphase.cli import main
-from surfphase.ingest import ingest_session, load_frames, output_camera, parse_frames
+from surfphase.folders.ingest import read_ingest
+from surfphase.ingest import ingest_session, output_camera, parse_frames
 
 W = H = 64
 
@@ -96,9 +97,9 @@ def test_same_frames_from_mp4_png_and_tiff(session):
     kw = {"frames": "1:7:2", "scale": 0.5, "crop": (4, 6, 56, 52)}
     outs = {k: _ingest(root, cams, src, k, **kw) for k in ("mp4", "png", "tif")}
     for cam in cams:
-        png = load_frames(outs["png"][0], cam)
-        tif = load_frames(outs["tif"][0], cam)
-        mp4 = load_frames(outs["mp4"][0], cam)
+        png = read_ingest(outs["png"][0]).stacks[cam]
+        tif = read_ingest(outs["tif"][0]).stacks[cam]
+        mp4 = read_ingest(outs["mp4"][0]).stacks[cam]
         assert isinstance(png, np.memmap) and png.dtype == np.float32
         assert png.shape == (3, 26, 28)
         # 8-bit PNG and 16-bit TIFF (×257) normalise to the very same floats.
@@ -154,7 +155,7 @@ def test_undistortion_puts_points_where_the_pinhole_sees_them(tmp_path):
     out_cam = load_cameras(tmp_path / "o" / "cameras.json")["cam0"]
     np.testing.assert_allclose(out_cam.K, cam.undistorted().cropped(*crop).scaled(0.5).K)
     np.testing.assert_allclose(out_cam.K, output_camera(cam, crop, (54, 56)).K)
-    stack = load_frames(tmp_path / "o", "cam0")
+    stack = read_ingest(tmp_path / "o").stacks["cam0"]
     expect = out_cam.project(X, distort=False)
     yy, xx = np.mgrid[0 : stack.shape[1], 0 : stack.shape[2]].astype(float)
     for u, v in expect:
@@ -210,7 +211,7 @@ def test_cli(session, tmp_path):
     assert main(args) == 0
     meta = json.loads((tmp_path / "o" / "meta.json").read_text())
     assert meta["frame_indices"] == [0, 4] and meta["fps"] == 100.0
-    assert load_frames(tmp_path / "o", "cam1").shape == (2, 16, 16)
+    assert read_ingest(tmp_path / "o").stacks["cam1"].shape == (2, 16, 16)
     bad = args[:5] + ["--cam", "cam0=/nonexistent/x.mp4", "--cam", f"cam1={src['cam1']['mp4']}"]
     bad += ["--fps", "100", "--out", str(tmp_path / "o2")]
     assert main(bad) == 2
@@ -254,7 +255,7 @@ def test_lzw_16bit_multipage_tiff_ingests_like_uncompressed(session, tmp_path):
     ingest_session("s13", cams, {n: src[n]["tif"] for n in cams}, 100.0, out=tmp_path / "raw", **kw)
     for n in cams:
         np.testing.assert_array_equal(
-            load_frames(tmp_path / "lzw", n), load_frames(tmp_path / "raw", n)
+            read_ingest(tmp_path / "lzw").stacks[n], read_ingest(tmp_path / "raw").stacks[n]
         )
 
 
@@ -325,9 +326,11 @@ def test_native_frames_are_the_unscaled_ingest(session, tmp_path):
     for cam in cams:
         nat = np.load(out / "native" / f"{cam}.npy")
         assert nat.dtype == np.uint16 and nat.shape == (5, 52, 56)
-        np.testing.assert_allclose(nat / 65535.0, load_frames(full, cam), atol=0.5 / 65535 + 1e-7)
+        np.testing.assert_allclose(
+            nat / 65535.0, read_ingest(full).stacks[cam], atol=0.5 / 65535 + 1e-7
+        )
         np.testing.assert_allclose(got[cam].K, ref[cam].K, atol=1e-12)
-        assert load_frames(out, cam).shape == (5, 26, 28)
+        assert read_ingest(out).stacks[cam].shape == (5, 26, 28)
     native_meta = json.loads((out / "native" / "meta.json").read_text())
     assert native_meta["cameras"] == list(cams) and native_meta["frame_indices"] == list(range(5))
     # At scale 1 there is nothing to keep: no native folder, and a stale one goes.

@@ -52,3 +52,33 @@ def test_nothing_cites_the_design_brief_outside_the_repository():
     for path in [*ROOT.joinpath("surfphase").rglob("*.py"), ROOT / "README.md",
                  *ROOT.joinpath("workflow").rglob("*.smk")]:  # fmt: skip
         assert "DESIGN.md" not in path.read_text(), path
+
+
+def _benchmark_sections() -> tuple[list[str], set[str]]:
+    """BENCHMARKS.md's headings (lower case) and their GitHub anchors."""
+    text = (ROOT / "BENCHMARKS.md").read_text()
+    heads = [h.strip().lower() for h in re.findall(r"^#{2,3} (.+)$", text, flags=re.M)]
+    anchors = {re.sub(r"[^\w\- ]", "", h).replace(" ", "-") for h in heads}
+    return heads, anchors
+
+
+def test_citations_of_benchmarks_name_sections_that_exist():
+    # A default or comment that gives BENCHMARKS.md as its reason must name a section
+    # that is still there: "(BENCHMARKS.md, fit)", '"prior"', or a link's #anchor.
+    heads, anchors = _benchmark_sections()
+    files = [*ROOT.joinpath("surfphase").rglob("*.py"), ROOT / "config" / "config.yaml",
+             ROOT / "README.md", *ROOT.joinpath("docs").glob("*.md"),
+             *ROOT.joinpath("workflow").rglob("*.smk")]  # fmt: skip
+    named = 0
+    for path in files:
+        text = path.read_text()
+        for anchor in re.findall(r"BENCHMARKS\.md#([\w-]+)", text):
+            assert anchor in anchors, f"{path.name} links to BENCHMARKS.md#{anchor}"
+            named += 1
+        pattern = r"BENCHMARKS\.md`?(?:\]\([^)]*\))?, \"?([a-z][\w -]*?)\"?[,)]"
+        for section in re.findall(pattern, text):
+            assert any(h.startswith(section.lower()) for h in heads), (
+                f"{path.name} cites BENCHMARKS.md, {section}: no such section"
+            )
+            named += 1
+    assert named >= 5  # the pattern still finds the citations

@@ -18,8 +18,9 @@ import yaml
 
 from surfphase.cameras import load_cameras
 from surfphase.cli import main as cli_main
-from surfphase.synth.bubbles import BubbleScene, FrameState
+from surfphase.synth.bubbles import BubbleScene
 from surfphase.synth.campaign import campaign_settings, session_scene, write_campaign
+from surfphase.synth.field import FrameState
 from surfphase.synth.groundtruth import frame_truth, mesh_volume, write_ply
 from surfphase.synth.shadowgraph import PLATE_MAX, PLATE_MIN
 

@@ -231,55 +231,55 @@ def test_run_targets_and_slurm_profile(toy, capsys):
 
 
 def test_progress_lines():
-    """The progress display turns Snakemake's job blocks into one line per event."""
-    log = """\
-Job stats:
-total        2
-
-[Sun Nov 22 21:36:04 2026]
-rule ingest:
-    output: results/s1/ingest/frames.txt
-    log: logs/ingest/s1.log
-    jobid: 3
-    reason: Missing output files
-    wildcards: s=s1
-    resources: tmpdir=/tmp
-Job 3 has been submitted with SLURM jobid 17 (log: x.log).
-Finished jobid: 3 (Rule: ingest)
-1 of 2 steps (50%) done
-Error in rule fit:
-    message: None
-    jobid: 2
-    log: logs/fit/s1.log (check log file(s) for error details)
-Complete log(s): /c/.snakemake/log/x.snakemake.log
-"""
+    """The progress display turns Snakemake's job events into one line per event."""
+    events = [
+        {"event": "run_info", "time": 0.0, "total": 2, "stats": {"ingest": 1, "fit": 1}},
+        {
+            "event": "job_info",
+            "time": 1.0,
+            "jobid": 3,
+            "rule": "ingest",
+            "wildcards": {"s": "s1"},
+            "output": ["results/s1/ingest/frames.txt"],
+            "log": ["logs/ingest/s1.log"],
+        },
+        {"event": "submitted", "time": 1.5, "jobid": 3, "external_jobid": "17"},
+        {"event": "job_finished", "time": 4.0, "jobid": 3},
+        {"event": "progress", "time": 4.0, "done": 1, "total": 2},
+        {"event": "job_error", "time": 5.0, "jobid": 2, "rule": "fit", "log": ["logs/fit/s1.log"]},
+    ]
     out = io.StringIO()
     prog = runmod.Progress(Path("/c"), out=out, live=False)
-    for line in log.splitlines():
-        prog.feed(line)
-    prog.close()
+    for ev in events:
+        prog.feed(ev)
     lines = out.getvalue().splitlines()
     assert lines[0].endswith("start  ingest s=s1")
     assert lines[1].endswith("queued as SLURM job 17")
-    assert "done   ingest s=s1" in lines[2]
+    assert "done   ingest s=s1 (3s)" in lines[2]
     assert lines[3] == "[  1/2    50%] FAILED fit   log: logs/fit/s1.log"
-    assert (prog.done, prog.total, prog.log_file) == (1, 2, "/c/.snakemake/log/x.snakemake.log")
+    assert (prog.done, prog.total) == (1, 2)
+    assert [(j.rule, j.log) for j in prog.failed] == [("fit", "logs/fit/s1.log")]
 
 
 def test_live_line_shows_running_jobs_and_their_logs(tmp_path):
     """On a terminal, long jobs show their elapsed time and the last line of their log."""
+    import time
+
     (tmp_path / "logs").mkdir()
     (tmp_path / "logs" / "fit.log").write_text("frame 1/24\nframe 7/24 psnr 31.2\n")
     out = io.StringIO()
     prog = runmod.Progress(tmp_path, out=out, live=True)
-    for line in [
-        "rule fit:",
-        "    log: logs/fit.log",
-        "    jobid: 5",
-        "    wildcards: session=a",
-        "    resources: tmpdir=/tmp",
-    ]:
-        prog.feed(line)
+    prog.feed(
+        {
+            "event": "job_info",
+            "time": time.time(),
+            "jobid": 5,
+            "rule": "fit",
+            "wildcards": {"session": "a"},
+            "output": ["results/a/fit"],
+            "log": ["logs/fit.log"],
+        }
+    )
     prog.tick()
     live = out.getvalue().rsplit("\r\033[K", 1)[-1]
     assert live.startswith("[  0/?      ] running: fit session=a 0m00s | frame 7/24 psnr 31.2")

@@ -13,8 +13,9 @@ from scipy.optimize import minimize
 from surfphase.cameras import Camera, load_cameras, look_at, orbit_cameras, save_cameras
 from surfphase.cli import main
 from surfphase.fit.outputs import render_surfels
+from surfphase.folders.views import read_mp4
 from surfphase.synth.rig import SCENE_CENTER, default_rig
-from surfphase.views import orbit_view_cameras, read_mp4, scene_center
+from surfphase.views import orbit_view_cameras, scene_center
 
 NATIVE = 64  # tiny images: the rig at 64×64 pixels
 FPS = 1500.0

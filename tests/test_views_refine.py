@@ -16,7 +16,7 @@ from test_prior_embedded import bubble_clip
 from test_views import make_tiny_session
 
 from surfphase.cli import main
-from surfphase.views import read_mp4
+from surfphase.folders.views import read_mp4
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = {"channels": [8, 16], "frames": 4, "overlap": 1, "crop": 16, "batch": 2,

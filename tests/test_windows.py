@@ -206,16 +206,9 @@ def test_status_and_progress_know_the_window_jobs(tmp_path):
     # The checkpoint job that counts the frames shows in `surfphase run`'s progress.
     out = io.StringIO()
     prog = Progress(tmp_path, out=out, live=False)
-    for line in [
-        "localcheckpoint mesh_frame_count:",
-        "    input: results/s1/ingest",
-        "    log: logs/mesh_frame_count/s1.log",
-        "    jobid: 8",
-        "    wildcards: session=s1",
-        "    resources: tmpdir=/tmp",
-        "Finished jobid: 8 (Rule: mesh_frame_count)",
-    ]:
-        prog.feed(line)
+    info = {"jobid": 8, "rule": "mesh_frame_count", "wildcards": {"session": "s1"}}
+    prog.feed({"event": "job_info", "time": 0.0, **info, "log": ["logs/mesh_frame_count/s1.log"]})
+    prog.feed({"event": "job_finished", "time": 1.0, "jobid": 8})
     text = out.getvalue()
     assert "start  mesh_frame_count session=s1" in text
     assert "done   mesh_frame_count session=s1" in text

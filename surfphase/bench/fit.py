@@ -110,7 +110,7 @@ def heldout_psnr(out: Path, sess: Path, cams: dict, device: str) -> list[float]:
     The fit reconstructs the bubbles only; behind them the held-out view sees the mean of
     the input views' background images (backlight and plate are not reconstructed).
     """
-    import cv2
+    from surfphase.eval.heldout import read_view
 
     surfels = load_surfels(out / "surfels.npz")
     mid = cams["mid"]
@@ -120,8 +120,7 @@ def heldout_psnr(out: Path, sess: Path, cams: dict, device: str) -> list[float]:
         path = sess / "gt" / "views" / "mid" / f"{int(f):06d}.png"
         if not path.exists():
             continue
-        gt = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64)
-        gt /= 65535.0 if gt.max() > 255 else 255.0
+        gt = read_view(path)  # by the PNG's bit depth
         rgb = render_surfels(surfels, t, [mid], device, bg)[0, ..., 0]
         vals.append(psnr(rgb, gt))
     return vals

@@ -32,17 +32,20 @@ def run_benchmark(
 ) -> dict:
     """Seconds per optimisation step (medians over ``repeats``) of stage 1 and of stage 2
     for each ``views_per_step``; CPU, ``threads`` torch threads."""
+    from surfphase.fit.backgrounds import input_backgrounds
     from surfphase.fit.densify import NoDensify
+    from surfphase.fit.optimise import fit_frame
     from surfphase.fit.outputs import load_surfels
-    from surfphase.fit.stage import SessionData, _backgrounds, fit_frame
+    from surfphase.fit.session import SessionData
     from surfphase.fit.stage2 import initial_model_from_stage1, load_extra_views, split_params
+    from surfphase.fit.viewset import FrameViews
     from surfphase.render import camera_tensors
 
     torch.set_num_threads(int(threads))
     data = SessionData(ingest_dir, masks_dir)
     surfels = load_surfels(Path(stage1_dir) / "surfels.npz")
     s2, p = split_params({})
-    bg = torch.as_tensor(_backgrounds(data, data.n_frames, p))
+    bg = torch.as_tensor(input_backgrounds(data, data.n_frames, p))
     vm, Ks = camera_tensors(data.cameras, "cpu", torch.float32)
     nc = len(data.cameras)
     t = min(1, data.n_frames - 1)
@@ -68,12 +71,11 @@ def run_benchmark(
             gen = torch.Generator().manual_seed(0)
             t0 = time.perf_counter()
             if not v:
-                fit_frame(model, obs, vm, Ks, bg, p, iters, NoDensify(), t, gen)
+                views = FrameViews(obs, vm, Ks, bg, nc, None)
             else:
-                fit_frame(
-                    model, v["obs"], v["vm"], v["Ks"], v["bg"], p, iters, NoDensify(), t, gen,
-                    view_schedule=v["ev"].schedule(t, nc), geo_views=nc,
-                )  # fmt: skip
+                views = FrameViews(v["obs"], v["vm"], v["Ks"], v["bg"], nc,
+                                   v["ev"].schedule(t, nc))  # fmt: skip
+            fit_frame(model, views, p, iters, NoDensify(), t, gen)
             times[name].append((time.perf_counter() - t0) / iters)
     base = float(np.median(times["stage1"]))
     out = {

@@ -152,28 +152,8 @@ def _sample(n: int, max_frames: int) -> np.ndarray:
     return np.unique(np.round(np.linspace(0, n - 1, max_frames)).astype(int))
 
 
-def open_sources(
-    paths: dict[str, Path],
-    timestamps: str | Path | None = None,
-    max_frames: int = MAX_FRAMES,
-    sync_tolerance: float | None = None,
-    where: str = "",
-) -> tuple[dict[str, FrameSource], dict]:
-    """Open every camera's calibration views; returns ``(sources, sync report)``.
-
-    Args:
-        paths: ``{camera: folder or recording}``; the first camera is camera 0.
-        timestamps: the timestamps file (recordings only; see the module doc).
-        max_frames: most frames sampled from a recording.
-        sync_tolerance: most time (s) between two frames of a pair; by default
-            ``SYNC_TOLERANCE_FRAMES`` of the slower camera's median frame interval.
-        where: prefix of error messages (``"rig r1: "``).
-
-    The sync report says how the views were paired: ``{"mode": "file names" |
-    "frame index" | "timestamps", ...}`` with, for timestamps, the tolerance used and
-    per camera the frames paired and alone.
-    """
-    names = list(paths)
+def _source_kinds(paths: dict[str, Path], where: str) -> dict[str, str]:
+    """``{camera: "folder" | "recording"}``; every camera must be of one kind."""
     kinds = {}
     for n, p in paths.items():
         p = Path(p)
@@ -183,53 +163,98 @@ def open_sources(
     if len(set(kinds.values())) > 1:
         raise ValueError(
             f"{where}give every camera a folder of images or every camera a recording, "
-            f"not a mix ({', '.join(f'{n}: {kinds[n]}' for n in names)})"
+            f"not a mix ({', '.join(f'{n}: {kinds[n]}' for n in paths)})"
         )
-    if kinds[names[0]] == "folder":
-        if timestamps:
-            raise ValueError(
-                f"{where}timestamps ({timestamps}) are for recordings; folders of images "
-                "are paired by file name"
-            )
-        sources = {}
-        for n in names:
-            files = sorted(
-                p.name for p in Path(paths[n]).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
-            )
-            if not files:
-                raise ValueError(
-                    f"{where}no calibration images (png/tif/jpg/bmp) in {paths[n]} ({n})"
-                )
-            sources[n] = FrameSource(
-                n, Path(paths[n]), "folder", files, {f: k for k, f in enumerate(files)}
-            )
-            sources[n].frame_count = len(files)
-        return sources, {"mode": "file names"}
+    return kinds
 
-    videos = {}
-    for n in names:
-        try:
-            videos[n] = open_video(paths[n])
-        except ValueError as e:
-            raise ValueError(f"{where}{n}: {e}") from e
-    counts = {n: v.count for n, v in videos.items()}
-    if not timestamps:
-        idx = _sample(max(counts.values()), max_frames)
-        sources = {}
-        for n in names:
-            mine = [int(i) for i in idx if i < counts[n]]
-            views = {f"f{i:06d}": i for i in mine}
-            sources[n] = FrameSource(n, Path(paths[n]), "recording", sorted(views), views)
-            sources[n].frame_count = counts[n]
-        report = {"mode": "frame index", "frames": counts, "sampled": len(idx)}
-        if len(set(counts.values())) > 1:
-            report["warning"] = (
-                "the recordings have different frame counts "
-                f"({', '.join(f'{n}: {c}' for n, c in counts.items())}); without a "
-                "timestamps file frame k of every camera is taken as the same moment"
-            )
-        return sources, report
 
+def _folder_sources(paths: dict[str, Path], timestamps, where: str) -> dict[str, FrameSource]:
+    """Folders of images, paired by file name."""
+    if timestamps:
+        raise ValueError(
+            f"{where}timestamps ({timestamps}) are for recordings; folders of images "
+            "are paired by file name"
+        )
+    sources = {}
+    for n in paths:
+        files = sorted(
+            p.name for p in Path(paths[n]).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES
+        )
+        if not files:
+            raise ValueError(f"{where}no calibration images (png/tif/jpg/bmp) in {paths[n]} ({n})")
+        sources[n] = FrameSource(
+            n, Path(paths[n]), "folder", files, {f: k for k, f in enumerate(files)}
+        )
+        sources[n].frame_count = len(files)
+    return sources
+
+
+def _frame_index_sources(
+    paths: dict[str, Path], counts: dict[str, int], max_frames: int
+) -> tuple[dict[str, FrameSource], dict]:
+    """Recordings without timestamps: frame k of every camera is one moment."""
+    idx = _sample(max(counts.values()), max_frames)
+    sources = {}
+    for n in paths:
+        mine = [int(i) for i in idx if i < counts[n]]
+        views = {f"f{i:06d}": i for i in mine}
+        sources[n] = FrameSource(n, Path(paths[n]), "recording", sorted(views), views)
+        sources[n].frame_count = counts[n]
+    report = {"mode": "frame index", "frames": counts, "sampled": len(idx)}
+    if len(set(counts.values())) > 1:
+        report["warning"] = (
+            "the recordings have different frame counts "
+            f"({', '.join(f'{n}: {c}' for n, c in counts.items())}); without a "
+            "timestamps file frame k of every camera is taken as the same moment"
+        )
+    return sources, report
+
+
+def _pair_by_time(
+    t0: np.ndarray, idx0: np.ndarray, t: np.ndarray, name: str, sync_tolerance: float,
+    max_frames: int,
+) -> tuple[dict[str, int], dict[int, int], list[int], np.ndarray]:  # fmt: skip
+    """One camera's frames (times ``t``) against camera 0's (``t0``, sampled ``idx0``).
+
+    Returns ``(views, taken, alone, dt)``: view name → frame, camera 0 frame → this
+    camera's partner (closest pairs first, one partner each), the frames with no
+    partner within ``sync_tolerance``, and each frame's time to its nearest partner.
+    """
+    order = np.argsort(t0, kind="stable")
+    # Camera 0's frame nearest in time to each of this camera's frames.
+    pos = np.clip(np.searchsorted(t0[order], t), 1, len(t0) - 1) if len(t0) > 1 else None
+    if pos is None:
+        near = np.zeros(len(t), dtype=int)
+    else:
+        left, right = order[pos - 1], order[pos]
+        near = np.where(np.abs(t0[left] - t) <= np.abs(t0[right] - t), left, right)
+    dt = np.abs(t0[near] - t)
+    paired = dt <= sync_tolerance
+    views: dict[str, int] = {}
+    sampled0 = set(int(i) for i in idx0)
+    taken: dict[int, int] = {}
+    for j in np.argsort(dt, kind="stable"):  # closest pairs first: one partner each
+        i = int(near[j])
+        if paired[j] and i in sampled0 and i not in taken:
+            taken[i] = int(j)
+    for i, j in taken.items():
+        views[f"f{i:06d}"] = j
+    alone = [j for j in range(len(t)) if not paired[j]]
+    for j in _sample(len(alone), max_frames) if alone else []:
+        views[f"{name}-f{alone[j]:06d}"] = int(alone[j])
+    return views, taken, alone, dt
+
+
+def _timestamp_sources(
+    paths: dict[str, Path],
+    counts: dict[str, int],
+    timestamps: str | Path,
+    max_frames: int,
+    sync_tolerance: float | None,
+    where: str,
+) -> tuple[dict[str, FrameSource], dict]:
+    """Recordings paired by the timestamps file, each camera against camera 0."""
+    names = list(paths)
     table = read_timestamps(timestamps)
     times = {n: _camera_times(table, n, counts[n], Path(timestamps)) for n in names}
     intervals = [np.median(np.diff(t)) for t in times.values() if len(t) > 1]
@@ -251,30 +276,9 @@ def open_sources(
         )
     }
     per_cam = {names[0]: {"frames": int(counts[names[0]]), "sampled": len(idx0)}}
-    order = np.argsort(t0, kind="stable")
     for n in names[1:]:
         t = times[n]
-        # Camera 0's frame nearest in time to each of this camera's frames.
-        pos = np.clip(np.searchsorted(t0[order], t), 1, len(t0) - 1) if len(t0) > 1 else None
-        if pos is None:
-            near = np.zeros(len(t), dtype=int)
-        else:
-            left, right = order[pos - 1], order[pos]
-            near = np.where(np.abs(t0[left] - t) <= np.abs(t0[right] - t), left, right)
-        dt = np.abs(t0[near] - t)
-        paired = dt <= sync_tolerance
-        views: dict[str, int] = {}
-        sampled0 = set(int(i) for i in idx0)
-        taken: dict[int, int] = {}
-        for j in np.argsort(dt, kind="stable"):  # closest pairs first: one partner each
-            i = int(near[j])
-            if paired[j] and i in sampled0 and i not in taken:
-                taken[i] = int(j)
-        for i, j in taken.items():
-            views[f"f{i:06d}"] = j
-        alone = [j for j in range(len(t)) if not paired[j]]
-        for j in _sample(len(alone), max_frames) if alone else []:
-            views[f"{n}-f{alone[j]:06d}"] = int(alone[j])
+        views, taken, alone, dt = _pair_by_time(t0, idx0, t, n, sync_tolerance, max_frames)
         frame_times = {v: float(t[j]) for v, j in views.items()}
         sources[n] = FrameSource(
             n, Path(paths[n]), "recording", sorted(views), views, frame_times, counts[n]
@@ -293,3 +297,39 @@ def open_sources(
         "cameras": per_cam,
     }
     return sources, report
+
+
+def open_sources(
+    paths: dict[str, Path],
+    timestamps: str | Path | None = None,
+    max_frames: int = MAX_FRAMES,
+    sync_tolerance: float | None = None,
+    where: str = "",
+) -> tuple[dict[str, FrameSource], dict]:
+    """Open every camera's calibration views; returns ``(sources, sync report)``.
+
+    Args:
+        paths: ``{camera: folder or recording}``; the first camera is camera 0.
+        timestamps: the timestamps file (recordings only; see the module doc).
+        max_frames: most frames sampled from a recording.
+        sync_tolerance: most time (s) between two frames of a pair; by default
+            ``SYNC_TOLERANCE_FRAMES`` of the slower camera's median frame interval.
+        where: prefix of error messages (``"rig r1: "``).
+
+    The sync report says how the views were paired: ``{"mode": "file names" |
+    "frame index" | "timestamps", ...}`` with, for timestamps, the tolerance used and
+    per camera the frames paired and alone.
+    """
+    kinds = _source_kinds(paths, where)
+    if kinds[next(iter(paths))] == "folder":
+        return _folder_sources(paths, timestamps, where), {"mode": "file names"}
+    videos = {}
+    for n in paths:
+        try:
+            videos[n] = open_video(paths[n])
+        except ValueError as e:
+            raise ValueError(f"{where}{n}: {e}") from e
+    counts = {n: v.count for n, v in videos.items()}
+    if not timestamps:
+        return _frame_index_sources(paths, counts, max_frames)
+    return _timestamp_sources(paths, counts, timestamps, max_frames, sync_tolerance, where)

@@ -95,7 +95,8 @@ def _bench(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from surfphase.cameras import load_cameras
+    from surfphase.folders.ingest import read_ingest
+    from surfphase.folders.masks import read_masks
     from surfphase.masks import classical
     from surfphase.masks.metrics import mask_metrics, warp_labels
     from surfphase.masks.stage import merge_params, run_mask_stage
@@ -115,9 +116,11 @@ def _bench(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     run_mask_stage(ingest, work / "masks", params)
     results["stage_seconds"] = round(time.perf_counter() - t0, 3)
-    seen = load_cameras(ingest / "cameras.json")
+    folder = read_ingest(ingest)
+    seen = folder.cameras
     truth = {c: warp_labels(np.load(gt / "masks" / f"{c}.npy"), true[c], seen[c]) for c in true}
-    pred = {c: np.load(work / "masks" / f"{c}_labels.npy") for c in true}
+    masks = read_masks(work / "masks", [seen[c] for c in true], folder.session)
+    pred = {c: np.array(lab) for c, lab in masks.labels.items()}
     results["accuracy"] = mask_metrics(truth, pred)
     acc = results["accuracy"]
     print(
@@ -153,7 +156,7 @@ def _bench(args: argparse.Namespace) -> int:
         results["timing"] = {}
         for scale, size in ((0.25, 128), (1.0, 512)):
             ing, _, _ = _ingest_for_bench(campaign, args.session, scale, work / f"ingest_{size}")
-            stack = np.load(ing / "cam0.npy", mmap_mode="r")
+            stack = read_ingest(ing).stacks["cam0"]
             n = min(int(args.timing_frames), stack.shape[0])
             cp = params["classical"]
             t0 = time.perf_counter()

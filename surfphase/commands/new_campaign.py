@@ -241,6 +241,58 @@ def _config_text(
     return head + text + SLURM_BLOCK
 
 
+def _session_rates(found: dict, labels: list[str], fps: float | None) -> dict[str, float]:
+    """``{session: frames/s}``: ``fps`` when given, else the videos' headers (which must
+    agree); every session needs a video of every camera."""
+    rates: dict[str, float] = {}
+    for session, cams in sorted(found.items()):
+        missing = [c for c in labels if c not in cams]
+        if missing:
+            raise ValueError(f"session {session}: no video for camera(s) {', '.join(missing)}")
+        heads = {c: header_fps(p) for c, p in cams.items()}
+        known = {c: r for c, r in heads.items() if r}
+        if fps:
+            rates[session] = float(fps)
+        elif known:
+            values = set(known.values())
+            if len(values) > 1:
+                raise ValueError(
+                    f"session {session}: cameras disagree on the frame rate "
+                    + ", ".join(f"{cams[c]}: {r:g} fps" for c, r in known.items())
+                )
+            rates[session] = values.pop()
+        else:
+            raise ValueError(
+                f"session {session}: no frame rate in the files ({', '.join(map(str, cams.values()))}); "
+                "give --fps"
+            )
+    return rates
+
+
+def _calibration_folders(
+    calib: Path | None, videos: Path, out: Path, cam_of: dict[str, str]
+) -> dict[str, Path]:
+    """``{camN: folder}``: ``calib/<camera label or camN>/``, else ``videos/calib/…``,
+    else an empty ``OUT/calib/<camN>/`` to fill."""
+    calib_dirs: dict[str, Path] = {}
+    calib = Path(calib).resolve() if calib else None
+    if calib is None and (videos / "calib").is_dir():
+        calib = videos / "calib"
+    for label, cam in cam_of.items():
+        if calib is not None:
+            cands = [calib / label, calib / cam]
+            hit = next((c for c in cands if c.is_dir()), None)
+            if hit is None:
+                raise FileNotFoundError(
+                    f"{calib}: no calibration folder for camera {label} ({cands[0].name}/ or {cam}/)"
+                )
+            calib_dirs[cam] = hit
+        else:
+            calib_dirs[cam] = out / "calib" / cam
+            calib_dirs[cam].mkdir(parents=True, exist_ok=True)
+    return calib_dirs
+
+
 def new_campaign(
     videos: Path,
     out: Path,
@@ -275,47 +327,8 @@ def new_campaign(
             "needs two synchronized cameras per session"
         )
     cam_of = {label: f"cam{i}" for i, label in enumerate(labels)}
-    rates: dict[str, float] = {}
-    for session, cams in sorted(found.items()):
-        missing = [c for c in labels if c not in cams]
-        if missing:
-            raise ValueError(f"session {session}: no video for camera(s) {', '.join(missing)}")
-        heads = {c: header_fps(p) for c, p in cams.items()}
-        known = {c: r for c, r in heads.items() if r}
-        if fps:
-            rates[session] = float(fps)
-        elif known:
-            values = set(known.values())
-            if len(values) > 1:
-                raise ValueError(
-                    f"session {session}: cameras disagree on the frame rate "
-                    + ", ".join(f"{cams[c]}: {r:g} fps" for c, r in known.items())
-                )
-            rates[session] = values.pop()
-        else:
-            raise ValueError(
-                f"session {session}: no frame rate in the files ({', '.join(map(str, cams.values()))}); "
-                "give --fps"
-            )
-
-    # Calibration folders: --calib DIR/<camera label or camN>/, else CAMPAIGN/calib/<camN>/.
-    calib_dirs: dict[str, Path] = {}
-    calib = Path(calib).resolve() if calib else None
-    if calib is None and (videos / "calib").is_dir():
-        calib = videos / "calib"
-    for label, cam in cam_of.items():
-        if calib is not None:
-            cands = [calib / label, calib / cam]
-            hit = next((c for c in cands if c.is_dir()), None)
-            if hit is None:
-                raise FileNotFoundError(
-                    f"{calib}: no calibration folder for camera {label} ({cands[0].name}/ or {cam}/)"
-                )
-            calib_dirs[cam] = hit
-        else:
-            calib_dirs[cam] = out / "calib" / cam
-            calib_dirs[cam].mkdir(parents=True, exist_ok=True)
-
+    rates = _session_rates(found, labels, fps)
+    calib_dirs = _calibration_folders(calib, videos, out, cam_of)
     cams = [cam_of[label] for label in labels]
     mapping = ", ".join(f"{cam_of[label]} = {label}" for label in labels)
     rows = [

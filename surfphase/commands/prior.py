@@ -217,17 +217,19 @@ def refine_view(
     so a rerun starts clean and gives the same arrays (the noise is seeded).
     """
     from surfphase.device import resolve_device
-    from surfphase.io import atomic_write_json, part_dir, save_npy
+    from surfphase.folders.frames import to_uint16
+    from surfphase.folders.views import read_views, write_refined
+    from surfphase.io import part_dir
     from surfphase.prior.interface import load_prior
     from surfphase.prior.sdedit import check_strength
-    from surfphase.views import load_view, to_uint16, write_mp4
 
     check_strength(strength)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     for stale in out_dir.glob(f".{view}.part-*"):
         shutil.rmtree(stale, ignore_errors=True)
-    frames, fps = load_view(views_dir, view)
+    views = read_views(views_dir)
+    frames, fps = views.frames(view), views.fps
     part = part_dir(out_dir / view)
     try:
         prior = load_prior(prior_dir, device=resolve_device(device))
@@ -248,11 +250,7 @@ def refine_view(
             "refine_s": round(seconds, 2),
             "mean_abs_change": float(np.abs(stack / 65535.0 - frames).mean()),
         }
-        atomic_write_json(part / f"{view}.json", info)
-        write_mp4(part / f"{view}.mp4", refined, fps)
-        save_npy(part / f"{view}.npy", stack)
-        for name in (f"{view}.json", f"{view}.mp4", f"{view}.npy"):  # the .npy last
-            os.replace(part / name, out_dir / name)
+        write_refined(part, out_dir, view, refined, fps, info)
     finally:
         shutil.rmtree(part, ignore_errors=True)
     return info

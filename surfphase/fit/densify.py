@@ -1,23 +1,28 @@
-"""Densification strategies (swappable objects, after gsplat's "strategy" design).
+"""Densification strategies (swappable objects, after gsplat's ``Strategy`` design).
 
-The fit calls, every iteration of the first frame::
+Every strategy implements :class:`Strategy`; the fit calls, at every step of a frame::
 
-    strategy.before_backward(info)          # keep the gradient of the 2D means
+    state = strategy.initialize_state(model.n, device)   # once per frame
+    strategy.before_backward(info)                        # e.g. keep the 2D-mean gradient
     loss.backward()
-    strategy.after_backward(model, optimizer, state, step, info)
+    if strategy.after_backward(model, optimizer, state, step, info, generator):
+        ...  # the surfel set changed: the gradients belong to replaced tensors
 
 ``info`` is the renderer's ``meta`` dict (``means2d`` (C, N, 2) pixels, ``radii``
-(C, N)) with ``width`` and ``height`` added by the fit. Later frames use
-:class:`NoDensify`, so the surfels, and with them the correspondences, stay the same.
+(C, N)) with ``width`` and ``height`` added by the fit. The first frame uses
+:class:`Densify2DGS` (``fit: densify``); later frames :class:`NoDensify`, so the
+surfels, and with them the correspondences, stay the same (:func:`frame_strategy`).
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 
 import torch
 
 from surfphase.fit.model import SurfelModel, per_surfel, quat_to_rotmat
+from surfphase.fit.params import DEFAULTS
 
 Edit = Callable[[str, torch.Tensor, bool], torch.Tensor]
 
@@ -71,7 +76,34 @@ def append_surfels(
     _edit_params_and_state(model, optimizer, edit)
 
 
-class NoDensify:
+class Strategy(ABC):
+    """The hooks a densification strategy implements (the same arguments for all)."""
+
+    @abstractmethod
+    def initialize_state(self, n: int, device: torch.device | str = "cpu") -> dict:
+        """The strategy's running state for a model of ``n`` surfels (one per frame)."""
+
+    @abstractmethod
+    def before_backward(self, info: dict) -> None:
+        """Called after the render, before ``loss.backward()``."""
+
+    @abstractmethod
+    def after_backward(
+        self,
+        model: SurfelModel,
+        optimizer: torch.optim.Optimizer | None,
+        state: dict,
+        step: int,
+        info: dict,
+        generator: torch.Generator | None = None,
+    ) -> bool:
+        """Called after ``loss.backward()``, before the optimiser step; may add or remove
+        surfels (``model`` and ``optimizer`` edited in place, random draws from
+        ``generator``). Returns whether the surfel set changed: the fit then skips the
+        optimiser step, whose gradients belong to the replaced tensors."""
+
+
+class NoDensify(Strategy):
     """The strategy of every frame after the first: the surfel set never changes."""
 
     def initialize_state(self, n: int, device: torch.device | str = "cpu") -> dict:
@@ -83,15 +115,16 @@ class NoDensify:
     def after_backward(
         self,
         model: SurfelModel,
-        optimizer: torch.optim.Optimizer,
+        optimizer: torch.optim.Optimizer | None,
         state: dict,
         step: int,
         info: dict,
+        generator: torch.Generator | None = None,
     ) -> bool:
         return False
 
 
-class Densify2DGS:
+class Densify2DGS(Strategy):
     """2DGS/gsplat-style adaptive density control: clone, split, prune.
 
     Every ``refine_every`` steps between ``refine_start`` and ``refine_stop``: surfels
@@ -100,18 +133,20 @@ class Densify2DGS:
     two (scales ÷ 1.6, positions drawn from the surfel) when large; then surfels with
     opacity below ``prune_opacity`` or a scale above ``prune_scale`` · L are removed.
     ``max_surfels`` caps growth (highest gradients first). ``L`` is the scene extent (m).
+    The defaults are the fit's (:data:`surfphase.fit.params.DEFAULTS`); the refinement
+    window, in steps, has none (:meth:`from_params` makes it from the fractions there).
     """
 
     def __init__(
         self,
-        refine_start: int = 50,
-        refine_stop: int = 300,
-        refine_every: int = 50,
-        grow_grad2d: float = 2e-4,
-        grow_scale: float = 0.01,
-        prune_opacity: float = 0.05,
-        prune_scale: float = 0.1,
-        max_surfels: int = 3000,
+        refine_start: int,
+        refine_stop: int,
+        refine_every: int = DEFAULTS["densify_every"],
+        grow_grad2d: float = DEFAULTS["grow_grad2d"],
+        grow_scale: float = DEFAULTS["grow_scale"],
+        prune_opacity: float = DEFAULTS["prune_opacity"],
+        prune_scale: float = DEFAULTS["prune_scale"],
+        max_surfels: int = DEFAULTS["max_surfels"],
     ):
         self.refine_start = refine_start
         self.refine_stop = refine_stop
@@ -121,6 +156,20 @@ class Densify2DGS:
         self.prune_opacity = prune_opacity
         self.prune_scale = prune_scale
         self.max_surfels = max_surfels
+
+    @classmethod
+    def from_params(cls, p: dict, iters: int) -> Densify2DGS:
+        """The strategy of a frame of ``iters`` steps under the fit settings ``p``."""
+        return cls(
+            refine_start=int(p["densify_start"] * iters),
+            refine_stop=int(p["densify_stop"] * iters),
+            refine_every=int(p["densify_every"]),
+            grow_grad2d=p["grow_grad2d"],
+            grow_scale=p["grow_scale"],
+            prune_opacity=p["prune_opacity"],
+            prune_scale=p["prune_scale"],
+            max_surfels=int(p["max_surfels"]),
+        )
 
     def initialize_state(self, n: int, device: torch.device | str = "cpu") -> dict:
         return {"grad2d": torch.zeros(n, device=device), "count": torch.zeros(n, device=device)}
@@ -148,7 +197,7 @@ class Densify2DGS:
     def after_backward(
         self,
         model: SurfelModel,
-        optimizer: torch.optim.Optimizer,
+        optimizer: torch.optim.Optimizer | None,
         state: dict,
         step: int,
         info: dict,
@@ -207,3 +256,11 @@ class Densify2DGS:
         select_surfels(model, optimizer, keep)
         state.update(self.initialize_state(model.n, model.means.device))
         return True
+
+
+def frame_strategy(p: dict, frame: int, iters: int) -> Strategy:
+    """The strategy of frame position ``frame`` (``iters`` steps): densification at the
+    first frame when ``fit: densify``, none after."""
+    if frame == 0 and p["densify"]:
+        return Densify2DGS.from_params(p, iters)
+    return NoDensify()

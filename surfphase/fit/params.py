@@ -35,7 +35,7 @@ DEFAULTS: dict = {
     # gate, the five other synthetic sessions fit as with it off (BENCHMARKS.md, fit).
     "hull_occlusion_ratio": 0.75,
     # A bubble formed by a merge (the mask stage's events.csv) is seeded afresh from its
-    # visual hull; see _reseed_merges.
+    # visual hull; see surfphase.fit.guidance.reseed_merges.
     "reseed_merges": True,
     "reseed_grid": 32,  # hull voxels per merged bubble
     "reseed_max_surfels": 800,

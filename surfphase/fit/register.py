@@ -21,6 +21,13 @@ import torch
 from surfphase.fit.model import SurfelModel
 
 
+def _alpha(means, quats, scales, opacities, colors, viewmats, Ks, W, H) -> torch.Tensor:
+    """(C, H, W, 1) accumulated opacity of the given surfels (the rasterizer's)."""
+    from surfphase.render import rasterize_surfels
+
+    return rasterize_surfels(means, quats, scales, opacities, colors, viewmats, Ks, W, H)[1]
+
+
 def register_bubbles(
     model: SurfelModel,
     bubble: np.ndarray,
@@ -106,17 +113,8 @@ def register_bubbles(
             if b not in ids or w_silhouette <= 0:
                 continue
             sel = row_t == ids.index(b)
-            _, a_b, _ = rasterize_surfels(
-                means[sel],
-                quats[sel],
-                scales[sel],
-                opac[sel],
-                colors[..., sel, :],
-                viewmats,
-                Ks,
-                W,
-                H,
-            )
+            a_b = _alpha(means[sel], quats[sel], scales[sel], opac[sel], colors[..., sel, :],
+                         viewmats, Ks, W, H)  # fmt: skip
             loss = loss + w_silhouette * (a_b[..., 0] - mask).abs().flatten(1).mean(dim=1).sum()
         opt.zero_grad(set_to_none=True)
         loss.backward()

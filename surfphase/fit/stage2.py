@@ -10,7 +10,8 @@ Per frame the loss is ``λ_app Σ_c w_c (L1 + D-SSIM)_c + λ_geo (geometry)``: i
 ``w = weight_inputs`` (1.0), refined views ``weight_near`` (0.5) for orbit views 1–3 and
 9–11 and ``weight_far`` (0.25) for ``far_views`` (4–8). The geometry losses, binding to
 bubbles (through the input views' masks), bubble guidance, spawning and per-frame
-checkpoints are those of :func:`surfphase.fit.stage.run_fit`, which runs the loop.
+checkpoints are stage 1's: both run the frame loop of :mod:`surfphase.fit.loop`, stage 2
+with the refined views in its :class:`~surfphase.fit.viewset.ViewSet`.
 
 Rendering every refined view at every step costs about 6× stage 1, so each step renders
 the input views and ``views_per_step`` refined views drawn without replacement
@@ -43,12 +44,15 @@ import numpy as np
 import torch
 
 from surfphase.cameras import Camera, load_cameras
+from surfphase.device import resolve_device
+from surfphase.fit.loop import FitInputs, run_frames
 from surfphase.fit.model import SurfelModel
 from surfphase.fit.outputs import load_surfels
 from surfphase.fit.params import DEFAULTS as FIT_DEFAULTS
 from surfphase.fit.params import FIT_OVERRIDES  # stage-1 settings stage 2 changes
 from surfphase.fit.params import STAGE2_DEFAULTS as DEFAULTS  # config fit2:
-from surfphase.fit.stage import merge_params, run_fit
+from surfphase.fit.session import SessionData
+from surfphase.fit.stage import checkpoint_folder, merge_params
 from surfphase.io import atomic_write_json
 from surfphase.render.shading import monotone_raw
 from surfphase.settings import check_keys
@@ -338,8 +342,6 @@ def run_fit_stage2(
     Returns:
         The summary dict of :func:`surfphase.fit.outputs.write_outputs`.
     """
-    from surfphase.fit.stage import SessionData
-
     s2, fit = split_params(params, fit_params)
     stage1 = Path(stage1_dir) / "surfels.npz"
     surfels = load_surfels(stage1)
@@ -354,17 +356,16 @@ def run_fit_stage2(
     for k, v in sorted(model.state().items()):
         h.update(k.encode())
         h.update(v.numpy().tobytes())
-    summary = run_fit(
-        ingest_dir,
-        masks_dir,
-        out_dir,
+    inputs = FitInputs(
+        data,
         fit,
-        device=device,
-        checkpoint_dir=checkpoint_dir,
-        initial_model=model,
-        extra_views=extra if extra.names else None,
+        start=lambda _gen: SurfelModel(model.state(), model.extent, fit["use_sdf"]),
+        refined=extra if extra.names else None,
         key_extra=h.hexdigest(),
     )
+    out = Path(out_dir)
+    summary = run_frames(inputs, out, checkpoint_folder(out, checkpoint_dir),
+                         resolve_device(device))  # fmt: skip
     atomic_write_json(
         Path(out_dir) / "stage2.json",
         {

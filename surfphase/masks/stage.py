@@ -28,15 +28,13 @@ segmented and associated; the label stacks and ``instances.csv`` are then downsc
 * ``masks.json`` — session, backend, parameters used, counts.
 
 Every file is written under a temporary name and renamed, and the outputs are only
-moved into ``OUT`` once all of them are complete.
+moved into ``OUT`` once all of them are complete. The input is read by
+:func:`surfphase.folders.ingest.read_ingest`, the outputs written by
+:func:`surfphase.folders.masks.write_masks`.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import shutil
-import tempfile
 import time
 import warnings
 from collections.abc import Mapping, Sequence
@@ -45,11 +43,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from surfphase.cameras import load_cameras
-from surfphase.io import atomic_write_json, atomic_write_text, load_stack, save_npy
+from surfphase.folders.frames import unit_grey
+from surfphase.folders.ingest import read_ingest, stack_path
+from surfphase.folders.masks import write_masks
 from surfphase.masks import anchors, classical
 from surfphase.masks.associate import associate
-from surfphase.masks.overlay import overlay_frame, save_png
+from surfphase.masks.overlay import overlay_frame
 from surfphase.masks.params import DEFAULTS
 from surfphase.settings import check_keys
 
@@ -73,68 +72,6 @@ def merge_params(params: Mapping | None) -> dict:
     return out
 
 
-def read_ingest(ingest_dir: Path) -> tuple[dict, dict, dict[str, np.ndarray]]:
-    """Read ``meta.json``, ``cameras.json`` and the frame stacks of an ingest folder.
-
-    Returns ``(meta, cameras, stacks)``; stacks are memory-mapped (T, H, W) arrays in
-    the order of ``meta["cameras"]``. Raises FileNotFoundError / ValueError naming the
-    file (and session) when something is missing or inconsistent.
-    """
-    ingest_dir = Path(ingest_dir)
-    meta_path = ingest_dir / "meta.json"
-    if not meta_path.is_file():
-        raise FileNotFoundError(f"{meta_path}: ingest metadata not found (run ingest first)")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except ValueError as e:
-        raise ValueError(f"{meta_path}: not valid JSON ({e})") from e
-    session = meta.get("session", ingest_dir.name)
-    cam_path = ingest_dir / "cameras.json"
-    if not cam_path.is_file():
-        raise FileNotFoundError(f"{cam_path}: cameras of session {session} not found")
-    cameras = load_cameras(cam_path)
-    names = list(meta.get("cameras") or [])
-    if not names:
-        names = [n for n in cameras if (ingest_dir / f"{n}.npy").is_file()]
-    if not names:
-        raise ValueError(f"{ingest_dir}: session {session} lists no cameras")
-    stacks: dict[str, np.ndarray] = {}
-    n_frames = None
-    for name in names:
-        path = ingest_dir / f"{name}.npy"
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"{path}: frame stack of camera {name} (session {session}) not found"
-            )
-        try:
-            st = load_stack(path)
-        except ValueError as e:
-            raise ValueError(f"{path}: not a readable .npy frame stack ({e})") from e
-        if st.ndim == 4 and st.shape[-1] in (1, 3):
-            pass
-        elif st.ndim != 3:
-            raise ValueError(
-                f"{path}: expected frames × H × W, got shape {st.shape} (session {session})"
-            )
-        if name not in cameras:
-            raise ValueError(f"{cam_path}: no camera {name!r} (session {session})")
-        cam = cameras[name]
-        if st.shape[1:3] != (cam.height, cam.width):
-            raise ValueError(
-                f"{path}: frames are {st.shape[2]}×{st.shape[1]} pixels but {cam_path} says "
-                f"{name} is {cam.width}×{cam.height} (session {session})"
-            )
-        if n_frames is not None and st.shape[0] != n_frames:
-            raise ValueError(
-                f"{path}: {st.shape[0]} frames, other cameras have {n_frames} (session {session})"
-            )
-        n_frames = st.shape[0]
-        if not (np.issubdtype(st.dtype, np.integer) or np.issubdtype(st.dtype, np.floating)):
-            raise ValueError(f"{path}: unsupported dtype {st.dtype} (session {session})")
-        stacks[name] = st
-    return meta, cameras, stacks
-
-
 def frame_spans(stack: np.ndarray, max_pixels: int = 65536) -> np.ndarray:
     """(T, 2) 0.1 and 99.9 percentiles of each frame's intensity, in [0, 1] of full scale.
 
@@ -144,7 +81,7 @@ def frame_spans(stack: np.ndarray, max_pixels: int = 65536) -> np.ndarray:
     step = max(1, int(np.ceil(np.sqrt(h * w / max_pixels))))
     out = np.empty((t_n, 2), np.float64)
     for t in range(t_n):
-        img = classical.to_unit_float(stack[t][::step, ::step])
+        img = unit_grey(stack[t][::step, ::step])
         out[t] = np.percentile(img, [0.1, 99.9])
     return out
 
@@ -152,7 +89,7 @@ def frame_spans(stack: np.ndarray, max_pixels: int = 65536) -> np.ndarray:
 def _where(meta: Mapping, ingest_dir: Path, name: str) -> str:
     """The camera's video and frame stack, for messages."""
     cam = (meta.get("cameras") or {}).get(name) if isinstance(meta.get("cameras"), dict) else None
-    stack = ingest_dir / f"{name}.npy"
+    stack = stack_path(ingest_dir, name)
     return f"video {cam['source']}, frames {stack}" if cam and cam.get("source") else str(stack)
 
 
@@ -230,7 +167,7 @@ def segment_stack(
             scores.append(s)
     else:
         for t in range(t_n):
-            labels[t], s = backend.generate(classical.to_unit_float(stack[t]), params["sam"])
+            labels[t], s = backend.generate(unit_grey(stack[t]), params["sam"])
             scores.append(s)
     return labels, scores, bg
 
@@ -340,24 +277,8 @@ def scaled_instances(instances: pd.DataFrame, sx: float, sy: float) -> pd.DataFr
     return out
 
 
-def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = None) -> None:
-    """Run the mask stage of one session (see the module docstring for the files).
-
-    Args:
-        ingest_dir: the session's ingest folder.
-        out_dir: output folder (created; existing outputs are replaced).
-        params: the ``masks`` section of the config (defaults: :data:`DEFAULTS`).
-    """
-    ingest_dir, out_dir = Path(ingest_dir), Path(out_dir)
-    p = merge_params(params)
-    meta, cameras, stacks = read_ingest(ingest_dir)
-    native = meta.get("native")
-    fit_stacks = stacks
-    seg_dir = ingest_dir
-    if native:
-        seg_dir = ingest_dir / str(native)
-        _, cameras, stacks = read_ingest(seg_dir)
-    blank_notes = check_dynamic_range(meta, seg_dir, stacks, float(p["min_dynamic_range"]))
+def _segment_all(stacks: Mapping[str, np.ndarray], p: Mapping) -> tuple[dict, dict, dict, float]:
+    """Every camera's :func:`segment_stack` → (labels, scores, backgrounds, seconds)."""
     backend = None
     if p["backend"] == "sam":
         # Imported here: ONNX Runtime and torch cost a classical run 1–2 s to load.
@@ -368,89 +289,124 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
     labels, scores, bgs = {}, {}, {}
     for name, st in stacks.items():
         labels[name], scores[name], bgs[name] = segment_stack(st, p, backend)
+    return labels, scores, bgs, time.perf_counter() - t0
+
+
+def _anchor_and_drop(
+    stacks: Mapping[str, np.ndarray],
+    labels: dict[str, np.ndarray],
+    instances: pd.DataFrame,
+    events: pd.DataFrame,
+    bgs: Mapping[str, tuple],
+    cameras: Mapping,
+    frames: np.ndarray,
+    fps: float | None,
+    p: Mapping,
+) -> tuple[pd.DataFrame, pd.DataFrame, int, list[int]]:
+    """With ≥ 2 views: the anchors (:func:`frame_anchors`), the inconsistent and the
+    static bubbles removed from ``labels`` (in place) and ``instances``.
+
+    Returns (instances, consistent anchors, how many pairs dropped, static ids).
+    """
+    anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "position"])
+    if len(stacks) < 2:
+        return instances, anchor_tab, 0, []
+    anchor_tab = frame_anchors(stacks, labels, bgs, cameras, frames, p)
+    pos = {int(f): k for k, f in enumerate(frames)}
+    anchor_tab["position"] = [pos[int(f)] for f in anchor_tab["frame"]]
+    merged = merged_in_every_view(events, list(stacks)[:2])
+    dropped = drop_inconsistent(labels, instances, anchor_tab, merged)
+    static = drop_static(labels, instances, anchor_tab, fps, float(p["anchors"]["min_speed_mps"]))
+    instances = instances[instances["bubble"] != -1].reset_index(drop=True)
+    anchor_tab = anchor_tab[
+        anchor_tab["consistent"].astype(bool) & ~anchor_tab["bubble"].isin(static)
+    ]
+    return instances, anchor_tab, dropped, static
+
+
+def _to_fit_size(
+    labels: dict[str, np.ndarray],
+    instances: pd.DataFrame,
+    seg_stacks: Mapping[str, np.ndarray],
+    fit_stacks: Mapping[str, np.ndarray],
+) -> tuple[dict[str, np.ndarray], pd.DataFrame]:
+    """Native-resolution labels and instances → the fit's frame size."""
+    out = {}
+    for name, full in labels.items():
+        h, w = fit_stacks[name].shape[1:3]
+        out[name] = np.stack(
+            [anchors.downsample_labels(full[t], (w, h)) for t in range(full.shape[0])]
+        )
+    parts = []
+    for name, g in instances.groupby("camera", sort=False):
+        h, w = fit_stacks[name].shape[1:3]
+        sx, sy = w / seg_stacks[name].shape[2], h / seg_stacks[name].shape[1]
+        parts.append(scaled_instances(g, sx, sy))
+    return out, (pd.concat(parts).sort_index() if parts else instances)
+
+
+def overlay_images(
+    stacks: Mapping[str, np.ndarray], labels: Mapping[str, np.ndarray], count: int
+) -> dict[str, np.ndarray]:
+    """``{"frame_XXXXX.png": RGB}`` of ``count`` frames evenly spaced over the session,
+    the views side by side (:func:`surfphase.masks.overlay.overlay_frame`)."""
+    n_frames = next(iter(stacks.values())).shape[0]
+    k = max(0, min(int(count), n_frames))
+    out = {}
+    for t in np.unique(np.linspace(0, n_frames - 1, k).round().astype(int)) if k else []:
+        pics = [overlay_frame(unit_grey(stacks[c][t]), labels[c][t]) for c in stacks]
+        hmax = max(pc.shape[0] for pc in pics)
+        pics = [np.pad(pc, ((0, hmax - pc.shape[0]), (0, 4), (0, 0))) for pc in pics]
+        out[f"frame_{int(t):05d}.png"] = np.concatenate(pics, axis=1)
+    return out
+
+
+def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = None) -> None:
+    """Run the mask stage of one session (see the module docstring for the files).
+
+    Args:
+        ingest_dir: the session's ingest folder.
+        out_dir: output folder (created; existing outputs are replaced).
+        params: the ``masks`` section of the config (defaults: :data:`DEFAULTS`).
+    """
+    ingest_dir, out_dir = Path(ingest_dir), Path(out_dir)
+    p = merge_params(params)
+    ingest = read_ingest(ingest_dir)
+    meta = ingest.meta
+    seg = ingest.native() or ingest
+    stacks = seg.stacks
+    blank_notes = check_dynamic_range(meta, seg.path, stacks, float(p["min_dynamic_range"]))
+    labels, scores, bgs, t_seg = _segment_all(stacks, p)
     plates = {name: bg[1] for name, bg in bgs.items()}
-    t_seg = time.perf_counter() - t0
-    fps = float(meta["fps"]) if meta.get("fps") else None
     bubble_labels, instances, events = associate(
-        labels, scores, cameras, p["associate"], plates, fps
+        labels, scores, seg.cameras, p["associate"], plates, ingest.fps
     )
     check_bubbles_found(meta, ingest_dir, instances, list(stacks))
-    frames = np.asarray(meta.get("frame_indices") or range(len(next(iter(stacks.values())))))
-    anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "position"])
-    dropped, static = 0, []
-    if len(stacks) >= 2:
-        anchor_tab = frame_anchors(stacks, bubble_labels, bgs, cameras, frames, p)
-        pos = {int(f): k for k, f in enumerate(frames)}
-        anchor_tab["position"] = [pos[int(f)] for f in anchor_tab["frame"]]
-        merged = merged_in_every_view(events, list(stacks)[:2])
-        dropped = drop_inconsistent(bubble_labels, instances, anchor_tab, merged)
-        static = drop_static(
-            bubble_labels, instances, anchor_tab, fps, float(p["anchors"]["min_speed_mps"])
-        )
-        instances = instances[instances["bubble"] != -1].reset_index(drop=True)
-        anchor_tab = anchor_tab[
-            anchor_tab["consistent"].astype(bool) & ~anchor_tab["bubble"].isin(static)
-        ]
-    if native:
-        for name in list(bubble_labels):
-            h, w = fit_stacks[name].shape[1:3]
-            full = bubble_labels[name]
-            bubble_labels[name] = np.stack(
-                [anchors.downsample_labels(full[t], (w, h)) for t in range(full.shape[0])]
-            )
-        parts = []
-        for name, g in instances.groupby("camera", sort=False):
-            h, w = fit_stacks[name].shape[1:3]
-            parts.append(scaled_instances(g, w / stacks[name].shape[2], h / stacks[name].shape[1]))
-        instances = pd.concat(parts).sort_index() if parts else instances
-        stacks = fit_stacks
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
-        for name, lab in bubble_labels.items():
-            save_npy(tmp / f"{name}_labels.npy", lab)
-        atomic_write_text(tmp / "instances.csv", instances.to_csv(index=False, float_format="%.3f"))
-        atomic_write_text(tmp / "events.csv", events.to_csv(index=False))
-        atomic_write_text(
-            tmp / "anchors.csv",
-            anchor_tab[[k for k in anchors.ANCHOR_COLUMNS if k != "consistent"]].to_csv(
-                index=False, float_format="%.9g"
-            ),
-        )
-        n_frames = next(iter(stacks.values())).shape[0]
-        k = max(0, min(int(p["overlay_frames"]), n_frames))
-        for t in np.unique(np.linspace(0, n_frames - 1, k).round().astype(int)) if k else []:
-            pics = [
-                overlay_frame(classical.to_unit_float(stacks[c][t]), bubble_labels[c][t])
-                for c in stacks
-            ]
-            hmax = max(pc.shape[0] for pc in pics)
-            pics = [np.pad(pc, ((0, hmax - pc.shape[0]), (0, 4), (0, 0))) for pc in pics]
-            save_png(tmp / "overlays" / f"frame_{int(t):05d}.png", np.concatenate(pics, axis=1))
-        atomic_write_json(
-            tmp / "masks.json",
-            {
-                "session": meta.get("session", ingest_dir.name),
-                "backend": p["backend"],
-                "params": p,
-                "cameras": list(stacks),
-                "frames": n_frames,
-                "instances": len(instances),
-                "bubbles": int(instances.loc[instances.bubble > 0, "bubble"].nunique()),
-                "events": len(events),
-                "native": bool(native),
-                "segmented_size": {c: list(st.shape[1:3][::-1]) for c, st in labels.items()},
-                "anchors": len(anchor_tab),
-                "dropped_inconsistent": dropped,
-                "dropped_static": static,
-                "segment_seconds": round(t_seg, 3),
-                "warnings": blank_notes,
-            },
-        )
-        out_dir.mkdir(parents=True, exist_ok=True)
-        if (out_dir / "overlays").exists():
-            shutil.rmtree(out_dir / "overlays")
-        for f in sorted(tmp.iterdir()):
-            os.replace(f, out_dir / f.name)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    instances, anchor_tab, dropped, static = _anchor_and_drop(
+        stacks, bubble_labels, instances, events, bgs, seg.cameras, ingest.frame_indices,
+        ingest.fps, p,
+    )  # fmt: skip
+    if seg is not ingest:
+        bubble_labels, instances = _to_fit_size(bubble_labels, instances, stacks, ingest.stacks)
+    info = {
+        "session": ingest.session,
+        "backend": p["backend"],
+        "params": p,
+        "cameras": list(ingest.stacks),
+        "frames": ingest.n_frames,
+        "instances": len(instances),
+        "bubbles": int(instances.loc[instances.bubble > 0, "bubble"].nunique()),
+        "events": len(events),
+        "native": seg is not ingest,
+        "segmented_size": {c: list(st.shape[1:3][::-1]) for c, st in labels.items()},
+        "anchors": len(anchor_tab),
+        "dropped_inconsistent": dropped,
+        "dropped_static": static,
+        "segment_seconds": round(t_seg, 3),
+        "warnings": blank_notes,
+    }
+    write_masks(
+        out_dir, bubble_labels, instances, events,
+        anchor_tab[[k for k in anchors.ANCHOR_COLUMNS if k != "consistent"]],
+        overlay_images(ingest.stacks, bubble_labels, p["overlay_frames"]), info,
+    )  # fmt: skip

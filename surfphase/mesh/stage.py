@@ -42,8 +42,10 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from surfphase.cameras import Camera, load_cameras, orbit_cameras
-from surfphase.fit.outputs import load_surfels
+from surfphase.cameras import Camera, orbit_cameras
+from surfphase.folders.fit import SURFELS, read_fit_surfels
+from surfphase.folders.ingest import read_ingest
+from surfphase.folders.masks import labels_path, read_masks
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text, part_dir, replace_dir
 from surfphase.mesh.cleanup import clean_mesh, mesh_stats
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
@@ -319,22 +321,16 @@ def _open_session(
 
     p = mesh_params(params)
     dev = str(resolve_device(device))
-    surfels_path = fit_dir / "surfels.npz"
-    surfels = load_surfels(surfels_path)
-    cam_path = ingest_dir / "cameras.json"
-    if not cam_path.exists():
-        raise FileNotFoundError(f"{cam_path}: no cameras.json in the ingest folder")
-    cams = load_cameras(cam_path)
+    surfels_path = fit_dir / SURFELS
+    surfels = read_fit_surfels(fit_dir)
+    ingest = read_ingest(ingest_dir, stacks=False, min_cameras=0)
+    cam_path, cams, session = ingest.cameras_path, ingest.cameras, ingest.session
     names = [str(c) for c in np.atleast_1d(surfels.get("cameras", []))]
     inputs = [cams[n] for n in names if n in cams] or [
         c for c in cams.values() if c.role == "input"
     ]
     if not inputs:
         raise ValueError(f"{cam_path}: no input cameras")
-    session = None
-    meta_path = ingest_dir / "meta.json"
-    if meta_path.exists():
-        session = json.loads(meta_path.read_text()).get("session")
     n_frames = surfels["alive"].shape[0]
     picks = list(range(n_frames)) if p["frames"] is None else [int(t) for t in p["frames"]]
     for t in picks:
@@ -351,19 +347,9 @@ def _open_session(
             "and no masks folder was given (--masks)"
         )
     if masks_dir is not None and (p["carve_px"] is not None or p["surface"] == "hull"):
-        masks = []
-        for cam in inputs:
-            path = Path(masks_dir) / f"{cam.name}_labels.npy"
-            if not path.is_file():
-                raise FileNotFoundError(f"{path}: session {session}: no masks of {cam.name}")
-            lab = np.load(path, mmap_mode="r")
-            if lab.shape[0] < n_frames or lab.shape[1:] != (cam.height, cam.width):
-                raise ValueError(
-                    f"{path}: session {session}: masks {lab.shape} do not match the fit's "
-                    f"{n_frames} frames of {cam.width}×{cam.height} pixels"
-                )
-            masks.append(lab)
-            mask_paths.append(path)
+        labels = read_masks(masks_dir, inputs, session, min_frames=n_frames).labels
+        masks = list(labels.values())
+        mask_paths = [labels_path(masks_dir, n) for n in labels]
     key = mesh_key(surfels_path, cam_path, p, dev)
     if mask_paths:  # the carve depends on the masks' content too
         key = hashlib.sha256("".join([key, *map(_file_hash, mask_paths)]).encode()).hexdigest()

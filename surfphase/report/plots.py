@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from surfphase.eval.stage import read_table
+from surfphase.folders.fit import BUBBLE_COLUMNS, read_csv_table
 from surfphase.io import atomic_path, atomic_write_text
 from surfphase.report.tables import (
     SUMMARY_COLUMNS,  # noqa: F401 (re-exported: the campaign summary's columns)
@@ -38,13 +38,13 @@ from surfphase.report.tables import (
     summary_table,
 )
 
-FIT_COLUMNS = ("frame", "bubble", "x", "y", "z", "vx", "vy", "vz")
+FIT_COLUMNS = BUBBLE_COLUMNS
 GT_MAX_DIST = 1.5e-3  # metres: a fit bubble farther than this from every true one is unpaired
 
 
 def read_bubbles(path: str | os.PathLike, what: str) -> pd.DataFrame:
     """A bubble table (``frame, bubble, x, y, z, vx, vy, vz``, m and m/s) from a CSV."""
-    return read_table(Path(path), FIT_COLUMNS, what)
+    return read_csv_table(Path(path), FIT_COLUMNS, what)
 
 
 def pair_truth(
@@ -308,6 +308,89 @@ def _fmt(v) -> str:
     return f"{v:.4g}"
 
 
+def _read_campaign_table(metrics_csv: Path) -> pd.DataFrame:
+    """The campaign table (one row per session, ``session`` as text)."""
+    if not metrics_csv.is_file():
+        raise FileNotFoundError(f"{metrics_csv}: campaign metrics not found")
+    try:
+        table = pd.read_csv(metrics_csv)
+    except (ValueError, pd.errors.ParserError) as e:
+        raise ValueError(f"{metrics_csv}: not a readable CSV ({e})") from e
+    if "session" not in table.columns:
+        raise ValueError(f"{metrics_csv}: no 'session' column")
+    table["session"] = table["session"].astype(str)
+    return table
+
+
+def _page_head(table: pd.DataFrame, summary: pd.DataFrame, title: str) -> list[str]:
+    """The page's head, introduction, summary table and every metric (folded)."""
+    full = table.set_index("session").T
+    full.index.name = "metric"
+    return [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{html.escape(title)}</title><style>{PAGE_STYLE}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+        f"<p>{len(table)} sessions. Velocities in m/s (lab frame, +y up); relative errors "
+        "are mean |v − v<sub>true</sub>| / mean |v<sub>true</sub>|. Held-out metrics: "
+        "mean over the held-out cameras, over the full frame and inside the bubble region "
+        "(the projected true bubbles), where the full frame is dominated by the heated "
+        "plate and backlight that the fit does not reconstruct. Ablations are stage-1 "
+        "fits: compare them with stage 1.</p>",
+        "<h2>Summary</h2>",
+        summary.to_html(index=False, float_format=_fmt, na_rep="–"),
+        "<details><summary>All metrics</summary>",
+        full.to_html(float_format=_fmt, na_rep="–"),
+        "</details>",
+    ]
+
+
+def _prior_section(prior_samples: str | os.PathLike | None) -> list[str]:
+    """The video prior's sample grid, or nothing."""
+    if prior_samples is None:
+        return []
+    prior_samples = Path(prior_samples)
+    if not prior_samples.is_file():
+        raise FileNotFoundError(f"{prior_samples}: prior sample grid not found")
+    return [
+        "<h2>Video prior</h2>",
+        "<p>Training clips above the black band; below it, videos the prior generated "
+        "from pure noise (frames left to right).</p>",
+        _img_tag(prior_samples, "video prior samples"),
+    ]
+
+
+def _session_section(row: pd.Series, media: Mapping[str, Mapping]) -> list[str]:
+    """One session's heading, comparison of its fits, figures, meshes, videos, overlays."""
+    session = row["session"]
+    files = {k: [Path(p) for p in v.get(session, ())] for k, v in media.items()}
+    for p in (p for group in files.values() for p in group):
+        if not p.is_file():
+            raise FileNotFoundError(f"{p}: session {session}: figure not found")
+    anchor = html.escape(session)
+    parts = [f'<h2 id="{anchor}">{anchor}</h2>']
+    comparison = comparison_table(row.to_dict())
+    if len(comparison.columns) > 1 and len(comparison):
+        parts.append(comparison.to_html(index=False, float_format=_fmt, na_rep="–"))
+    parts += [_img_tag(p, f"{session} {p.stem}") for p in files["figures"]]
+    if files["meshes"]:
+        parts.append("<h3>Meshes coloured by speed</h3>")
+        parts.append('<div class="meshes">')
+        parts += [_img_tag(p, f"{session} mesh {p.stem}") for p in files["meshes"]]
+        parts.append("</div>")
+    if files["videos"]:
+        parts.append("<h3>Novel views</h3>")
+        parts.append('<div class="videos">')
+        parts += [_video_tag(p, p.stem.replace("_", " ")) for p in files["videos"]]
+        parts.append("</div>")
+    if files["overlays"]:
+        parts.append("<h3>Mask overlays</h3>")
+        parts.append('<div class="overlays">')
+        parts += [_img_tag(p, f"{session} mask overlay {p.stem}") for p in files["overlays"]]
+        parts.append("</div>")
+    return parts
+
+
 def campaign_page(
     metrics_csv: str | os.PathLike,
     out_html: str | os.PathLike,
@@ -339,15 +422,7 @@ def campaign_page(
             training clips above the black band, videos generated from noise below).
     """
     metrics_csv = Path(metrics_csv)
-    if not metrics_csv.is_file():
-        raise FileNotFoundError(f"{metrics_csv}: campaign metrics not found")
-    try:
-        table = pd.read_csv(metrics_csv)
-    except (ValueError, pd.errors.ParserError) as e:
-        raise ValueError(f"{metrics_csv}: not a readable CSV ({e})") from e
-    if "session" not in table.columns:
-        raise ValueError(f"{metrics_csv}: no 'session' column")
-    table["session"] = table["session"].astype(str)
+    table = _read_campaign_table(metrics_csv)
     media = {
         "figures": dict(figures or {}),
         "overlays": dict(overlays or {}),
@@ -358,62 +433,9 @@ def campaign_page(
     if unknown:
         raise ValueError(f"{metrics_csv}: figures given for sessions not in the table: {unknown}")
     summary = summary_table(table)
-    full = table.set_index("session").T
-    full.index.name = "metric"
-    parts = [
-        "<!DOCTYPE html>",
-        '<html lang="en"><head><meta charset="utf-8">',
-        f"<title>{html.escape(title)}</title><style>{PAGE_STYLE}</style></head><body>",
-        f"<h1>{html.escape(title)}</h1>",
-        f"<p>{len(table)} sessions. Velocities in m/s (lab frame, +y up); relative errors "
-        "are mean |v − v<sub>true</sub>| / mean |v<sub>true</sub>|. Held-out metrics: "
-        "mean over the held-out cameras, over the full frame and inside the bubble region "
-        "(the projected true bubbles), where the full frame is dominated by the heated "
-        "plate and backlight that the fit does not reconstruct. Ablations are stage-1 "
-        "fits: compare them with stage 1.</p>",
-        "<h2>Summary</h2>",
-        summary.to_html(index=False, float_format=_fmt, na_rep="–"),
-        "<details><summary>All metrics</summary>",
-        full.to_html(float_format=_fmt, na_rep="–"),
-        "</details>",
-    ]
-    if prior_samples is not None:
-        prior_samples = Path(prior_samples)
-        if not prior_samples.is_file():
-            raise FileNotFoundError(f"{prior_samples}: prior sample grid not found")
-        parts += [
-            "<h2>Video prior</h2>",
-            "<p>Training clips above the black band; below it, videos the prior generated "
-            "from pure noise (frames left to right).</p>",
-            _img_tag(prior_samples, "video prior samples"),
-        ]
+    parts = _page_head(table, summary, title) + _prior_section(prior_samples)
     for _, row in table.iterrows():
-        session = row["session"]
-        files = {k: [Path(p) for p in v.get(session, ())] for k, v in media.items()}
-        for p in (p for group in files.values() for p in group):
-            if not p.is_file():
-                raise FileNotFoundError(f"{p}: session {session}: figure not found")
-        anchor = html.escape(session)
-        parts.append(f'<h2 id="{anchor}">{anchor}</h2>')
-        comparison = comparison_table(row.to_dict())
-        if len(comparison.columns) > 1 and len(comparison):
-            parts.append(comparison.to_html(index=False, float_format=_fmt, na_rep="–"))
-        parts += [_img_tag(p, f"{session} {p.stem}") for p in files["figures"]]
-        if files["meshes"]:
-            parts.append("<h3>Meshes coloured by speed</h3>")
-            parts.append('<div class="meshes">')
-            parts += [_img_tag(p, f"{session} mesh {p.stem}") for p in files["meshes"]]
-            parts.append("</div>")
-        if files["videos"]:
-            parts.append("<h3>Novel views</h3>")
-            parts.append('<div class="videos">')
-            parts += [_video_tag(p, p.stem.replace("_", " ")) for p in files["videos"]]
-            parts.append("</div>")
-        if files["overlays"]:
-            parts.append("<h3>Mask overlays</h3>")
-            parts.append('<div class="overlays">')
-            parts += [_img_tag(p, f"{session} mask overlay {p.stem}") for p in files["overlays"]]
-            parts.append("</div>")
+        parts += _session_section(row, media)
     parts.append("</body></html>")
     atomic_write_text(out_html, "\n".join(parts) + "\n")
     return summary

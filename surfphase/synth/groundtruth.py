@@ -30,7 +30,7 @@ import pandas as pd
 from skimage.measure import marching_cubes
 
 from surfphase.io import atomic_path
-from surfphase.synth.bubbles import K_SCENE, FrameState
+from surfphase.synth.field import K_SCENE, FrameState
 
 BUBBLE_COLUMNS = ["frame", "bubble", "x", "y", "z", "vx", "vy", "vz", "r_eq"]
 

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from surfphase.cameras import Camera
-from surfphase.synth.bubbles import FrameState
+from surfphase.synth.field import FrameState
 
 #: Heated plate block, lab frame, metres: (min corner, max corner).
 PLATE_MIN = np.array([-0.012, -0.004, -0.006])
