@@ -298,3 +298,15 @@ def test_bad_inputs_name_the_file(tmp_path):
         run_mesh(tmp_path, tmp_path, tmp_path / "out")
     with pytest.raises(ValueError, match="unknown parameter"):
         mesh_params({"voxel": 3})
+
+
+def test_hull_surface_needs_the_masks(tmp_path):
+    """`mesh: surface: hull` (the default) meshes the masks' hulls: without a masks
+    folder the stage stops and says so; an unknown surface is refused."""
+    from surfphase.mesh.stage import run_mesh
+
+    fit, ingest = _write_fit(tmp_path)
+    with pytest.raises(ValueError, match="no masks folder"):
+        run_mesh(fit, ingest, tmp_path / "out", device="cpu")
+    with pytest.raises(ValueError, match="surface must be"):
+        run_mesh(fit, ingest, tmp_path / "out", {"surface": "tsdf"}, device="cpu")

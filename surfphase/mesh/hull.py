@@ -148,6 +148,10 @@ def elliptic_hull_distance(
     return out.reshape(shape)
 
 
+#: The most voxels along the longest side of one bubble's fine grid.
+MAX_HULL_VOXELS = 128
+
+
 def bubble_spheres(
     cameras: Sequence[Camera], labels: Sequence[np.ndarray]
 ) -> dict[int, tuple[np.ndarray, float]]:
@@ -230,13 +234,14 @@ def bubble_hull_volume(
     own_labels = [np.where(np.asarray(lb) == b, b, -1) for lb in labels[:2]]
     rays = [c - cam.center for cam, c in zip(cameras[:2], (centre, centre), strict=True)]
     cosang = float(rays[0] @ rays[1] / (np.linalg.norm(rays[0]) * np.linalg.norm(rays[1])))
-    sin_half = np.sqrt(max(0.5 * (1.0 - cosang), 1e-4))
+    sin_half = np.sqrt(max(0.5 * (1.0 - cosang), 0.01))  # views ≥ 11.5° apart: ≤ 82³ voxels
     coarse = radius / 3.0
     origin, shape = _cube(centre, radius * (1.5 + 1.2 / sin_half), coarse)
     box = _own_box(origin, shape, coarse, cameras, own_labels, b)
     if box is None:
         return None
-    voxel = radius / float(voxels_per_radius)
+    # At most MAX_HULL_VOXELS along the box's longest side (a wide nucleation region).
+    voxel = max(radius / float(voxels_per_radius), float(np.max(box[1] - box[0])) / MAX_HULL_VOXELS)
     margin = coarse + (float(trunc_voxels) + 2.0) * voxel
     lo, hi = box[0] - margin, box[1] + margin
     shape = tuple(int(np.ceil(s)) + 1 for s in (hi - lo) / voxel)
