@@ -16,9 +16,9 @@ if _unknown_ablations:
         f"config evaluate.ablations: unknown {_unknown_ablations} "
         f"(known: {sorted(ABLATION_SETTINGS)})"
     )
-REGION_SCALE = float((config.get("evaluate") or {}).get("region_scale", 1.5))
+REGION_SCALE = float(config["evaluate"]["region_scale"])  # the schema's default
 # Meshes of stage 1 and the ablations too, for their Chamfer (sessions with ground truth).
-COMPARE_MESHES = bool((config.get("evaluate") or {}).get("compare_meshes", True))
+COMPARE_MESHES = bool(config["evaluate"]["compare_meshes"])
 
 
 wildcard_constraints:
