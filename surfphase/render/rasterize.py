@@ -43,6 +43,8 @@ BACKENDS = {
     "sparse": "surfphase.render.sparse:rasterize_sparse",
     "fused": "surfphase.render.fused:rasterize_fused",
 }
+# The fused backend returns the public outputs itself (its output finishing is fused
+# too); the others return raw accumulations for :func:`finish_outputs`.
 
 
 def rasterize_surfels(
@@ -126,11 +128,19 @@ def rasterize_surfels(
     if max_pairs_per_chunk < 1:
         raise ValueError("rasterize_surfels: max_pairs_per_chunk must be ≥ 1")
     if backend == "auto":
-        backend = "fused" if means.device.type == "cpu" else "torch"
+        cpu = means.device.type == "cpu"
+        backend = "fused" if cpu and not (viewmats.requires_grad or Ks.requires_grad) else "torch"
     if backend not in BACKENDS:
         raise ValueError(
             f"rasterize_surfels: unknown backend {backend!r}; known: {', '.join(BACKENDS)}"
         )
+    if backend == "fused":
+        from surfphase.render.fused import rasterize_fused
+
+        return rasterize_fused(
+            means, quats, scales, opacities, colors, viewmats, Ks, int(width), int(height),
+            float(near), float(far), float(low_pass), backgrounds,
+        )  # fmt: skip
     module, func = BACKENDS[backend].split(":")
     backend_fn = getattr(importlib.import_module(module), func)
     out = backend_fn(
