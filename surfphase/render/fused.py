@@ -57,8 +57,11 @@ BAND = 8
 _G_C0, _G_C1, _G_Z, _G_N, _G_MX, _G_MY, _G_FLIP, _G_WIDTH = 0, 3, 6, 7, 10, 11, 12, 13
 # Columns of the visible surfels' feature table: adjugate J (row-major), det, centre
 # (pixels), centre depth, opacity, normal (camera, facing it), support radius² for the
-# spans, the conic's x² coefficient, colour (D).
-_J, _DET, _MX, _MY, _Z, _OPA, _NRM, _R2, _A, _COL = 0, 9, 10, 11, 12, 13, 14, 17, 18, 19
+# spans, the conic's x² coefficient, the tangent columns c0, c1 (for the backward
+# pass), colour (D).
+_J, _DET, _MX, _MY, _Z, _OPA, _NRM, _R2, _A, _C0, _C1, _COL = (
+    0, 9, 10, 11, 12, 13, 14, 17, 18, 19, 22, 25
+)  # fmt: skip
 # Gradient slots use the same columns up to the normal, then colour at 17.
 _GCOL = 17
 
@@ -264,7 +267,8 @@ class _Raster(torch.autograd.Function):
         g_m2d = np.empty((C, N, 2))
         g_opa = np.empty(N)
         g_col = np.empty((n_col_cams, N, D))
-        _reduce(gslot, sbase, tix, vis, tab_box, g, f, D, BAND, nth, g_geo, g_m2d, g_opa, g_col)
+        g_tab = np.empty((tab_cn.shape[0], 13 + D))
+        _reduce(gslot, sbase, tab_cn, tix, f, D, nth, g_tab, g_geo, g_m2d, g_opa, g_col)
         g_bg = None
         if has_bg and ctx.needs_input_grad[4]:
             g_bg = torch.from_numpy(row_bg.reshape(C, H, D).sum(axis=1)).to(dtype)
@@ -335,7 +339,6 @@ def _project_one(means, quats, scales, V, K, n, geo, p, a, b, nn):
     su, sv = scales[n, 0], scales[n, 1]
     mx, my, mz = means[n, 0], means[n, 1], means[n, 2]
     for c in range(C):
-        gc = geo[c, n]
         for i in range(3):
             Ri0, Ri1, Ri2 = V[c, i, 0], V[c, i, 1], V[c, i, 2]
             p[i] = Ri0 * mx + Ri1 * my + Ri2 * mz + V[c, i, 3]
@@ -343,16 +346,16 @@ def _project_one(means, quats, scales, V, K, n, geo, p, a, b, nn):
             b[i] = (Ri0 * r01 + Ri1 * r11 + Ri2 * r21) * sv
             nn[i] = Ri0 * r02 + Ri1 * r12 + Ri2 * r22
         for i in range(3):
-            gc[_G_C0 + i] = K[c, i, 0] * a[0] + K[c, i, 1] * a[1] + K[c, i, 2] * a[2]
-            gc[_G_C1 + i] = K[c, i, 0] * b[0] + K[c, i, 1] * b[1] + K[c, i, 2] * b[2]
+            geo[c, n, _G_C0 + i] = K[c, i, 0] * a[0] + K[c, i, 1] * a[1] + K[c, i, 2] * a[2]
+            geo[c, n, _G_C1 + i] = K[c, i, 0] * b[0] + K[c, i, 1] * b[1] + K[c, i, 2] * b[2]
         zc = p[2]
-        gc[_G_Z] = zc
-        gc[_G_MX] = (K[c, 0, 0] * p[0] + K[c, 0, 1] * p[1] + K[c, 0, 2] * p[2]) / zc
-        gc[_G_MY] = (K[c, 1, 0] * p[0] + K[c, 1, 1] * p[1] + K[c, 1, 2] * p[2]) / zc
+        geo[c, n, _G_Z] = zc
+        geo[c, n, _G_MX] = (K[c, 0, 0] * p[0] + K[c, 0, 1] * p[1] + K[c, 0, 2] * p[2]) / zc
+        geo[c, n, _G_MY] = (K[c, 1, 0] * p[0] + K[c, 1, 1] * p[1] + K[c, 1, 2] * p[2]) / zc
         flip = -1.0 if nn[0] * p[0] + nn[1] * p[1] + nn[2] * p[2] > 0 else 1.0
-        gc[_G_FLIP] = flip
+        geo[c, n, _G_FLIP] = flip
         for i in range(3):
-            gc[_G_N + i] = nn[i] * flip
+            geo[c, n, _G_N + i] = nn[i] * flip
 
 
 @njit(**_KW, parallel=True)
@@ -373,42 +376,42 @@ def _project_backward(means, quats, scales, V, K, geo, g_m2d, g_geo, n_threads, 
             w, x, y, z = w0 * inv, x0 * inv, y0 * inv, z0 * inv
             r = _rotmat(w, x, y, z)
             su, sv = scales[n, 0], scales[n, 1]
-            grot[:] = 0.0
+            for k in range(9):
+                grot[k] = 0.0
             g_su = 0.0
             g_sv = 0.0
-            g_mean[:] = 0.0
+            for k in range(3):
+                g_mean[k] = 0.0
             for c in range(C):
-                gc = geo[c, n]
-                gg = g_geo[c, n]
-                zc = gc[_G_Z]
+                zc = geo[c, n, _G_Z]
                 # means2d = (K·p)[:2] / z, z = p[2].
                 gx, gy = g_m2d[c, n, 0], g_m2d[c, n, 1]
                 gpx, gpy = gx / zc, gy / zc
-                gz = gg[_G_Z] - (gx * gc[_G_MX] + gy * gc[_G_MY]) / zc
+                gz = g_geo[c, n, _G_Z] - (gx * geo[c, n, _G_MX] + gy * geo[c, n, _G_MY]) / zc
                 for i in range(3):
                     gp[i] = K[c, 0, i] * gpx + K[c, 1, i] * gpy
                     # c0 = K·a, c1 = K·b → g_a = Kᵀ·g_c0, g_b = Kᵀ·g_c1.
                     ga[i] = (
-                        K[c, 0, i] * gg[_G_C0]
-                        + K[c, 1, i] * gg[_G_C0 + 1]
-                        + K[c, 2, i] * gg[_G_C0 + 2]
+                        K[c, 0, i] * g_geo[c, n, _G_C0]
+                        + K[c, 1, i] * g_geo[c, n, _G_C0 + 1]
+                        + K[c, 2, i] * g_geo[c, n, _G_C0 + 2]
                     )
                     gb[i] = (
-                        K[c, 0, i] * gg[_G_C1]
-                        + K[c, 1, i] * gg[_G_C1 + 1]
-                        + K[c, 2, i] * gg[_G_C1 + 2]
+                        K[c, 0, i] * g_geo[c, n, _G_C1]
+                        + K[c, 1, i] * g_geo[c, n, _G_C1 + 1]
+                        + K[c, 2, i] * g_geo[c, n, _G_C1 + 2]
                     )
                 gp[2] += gz
-                flip = gc[_G_FLIP]
+                flip = geo[c, n, _G_FLIP]
                 for j in range(3):
                     # p = R·mean + t, a = R·rot[:, 0]·s_u, b = R·rot[:, 1]·s_v, n = flip·R·rot[:, 2].
                     rp = V[c, 0, j] * gp[0] + V[c, 1, j] * gp[1] + V[c, 2, j] * gp[2]
                     ra = V[c, 0, j] * ga[0] + V[c, 1, j] * ga[1] + V[c, 2, j] * ga[2]
                     rb = V[c, 0, j] * gb[0] + V[c, 1, j] * gb[1] + V[c, 2, j] * gb[2]
                     rn = (
-                        V[c, 0, j] * gg[_G_N]
-                        + V[c, 1, j] * gg[_G_N + 1]
-                        + V[c, 2, j] * gg[_G_N + 2]
+                        V[c, 0, j] * g_geo[c, n, _G_N]
+                        + V[c, 1, j] * g_geo[c, n, _G_N + 1]
+                        + V[c, 2, j] * g_geo[c, n, _G_N + 2]
                     )
                     g_mean[j] += rp
                     grot[3 * j] += ra * su
@@ -498,10 +501,9 @@ def _cull(geo, opa, W, H, near, far, low_pass, n_threads, box, vis, radii):
     for i in prange(C * N):
         c = i // N
         n = i % N
-        gc = geo[c, n]
-        a0, a1, a2 = gc[_G_C0], gc[_G_C0 + 1], gc[_G_C0 + 2]
-        b0, b1, b2 = gc[_G_C1], gc[_G_C1 + 1], gc[_G_C1 + 2]
-        zc, mx, my = gc[_G_Z], gc[_G_MX], gc[_G_MY]
+        a0, a1, a2 = geo[c, n, _G_C0], geo[c, n, _G_C0 + 1], geo[c, n, _G_C0 + 2]
+        b0, b1, b2 = geo[c, n, _G_C1], geo[c, n, _G_C1 + 1], geo[c, n, _G_C1 + 2]
+        zc, mx, my = geo[c, n, _G_Z], geo[c, n, _G_MX], geo[c, n, _G_MY]
         e0, e1, e2 = mx * zc, my * zc, zc
         d00 = k2 * (a0 * a0 + b0 * b0) - e0 * e0
         d11 = k2 * (a1 * a1 + b1 * b1) - e1 * e1
@@ -549,7 +551,8 @@ def _radix_order(keys):
                 break
         if same:
             continue
-        count[:] = 0
+        for d in range(257):
+            count[d] = 0
         for i in range(n):
             count[((keys[i] >> shift) & 255) + 1] += 1
         for d in range(256):
@@ -651,58 +654,59 @@ def _table(geo, opa, col, tab_cn, N, n_threads, f):
     for t in prange(S):
         c = tab_cn[t] // N
         n = tab_cn[t] - c * N
-        gc = geo[c, n]
-        a0, a1, a2 = gc[_G_C0], gc[_G_C0 + 1], gc[_G_C0 + 2]
-        b0, b1, b2 = gc[_G_C1], gc[_G_C1 + 1], gc[_G_C1 + 2]
-        zc = gc[_G_Z]
-        e0, e1, e2 = gc[_G_MX] * zc, gc[_G_MY] * zc, zc
-        ft = f[t]
+        a0, a1, a2 = geo[c, n, _G_C0], geo[c, n, _G_C0 + 1], geo[c, n, _G_C0 + 2]
+        b0, b1, b2 = geo[c, n, _G_C1], geo[c, n, _G_C1 + 1], geo[c, n, _G_C1 + 2]
+        zc = geo[c, n, _G_Z]
+        e0, e1, e2 = geo[c, n, _G_MX] * zc, geo[c, n, _G_MY] * zc, zc
         # J rows: c1 × centre, centre × c0, c0 × c1.
-        ft[0] = b1 * e2 - b2 * e1
-        ft[1] = b2 * e0 - b0 * e2
-        ft[2] = b0 * e1 - b1 * e0
-        ft[3] = e1 * a2 - e2 * a1
-        ft[4] = e2 * a0 - e0 * a2
-        ft[5] = e0 * a1 - e1 * a0
-        ft[6] = a1 * b2 - a2 * b1
-        ft[7] = a2 * b0 - a0 * b2
-        ft[8] = a0 * b1 - a1 * b0
-        ft[_DET] = a0 * ft[0] + a1 * ft[1] + a2 * ft[2]
-        ft[_MX] = gc[_G_MX]
-        ft[_MY] = gc[_G_MY]
-        ft[_Z] = zc
+        f[t, 0] = b1 * e2 - b2 * e1
+        f[t, 1] = b2 * e0 - b0 * e2
+        f[t, 2] = b0 * e1 - b1 * e0
+        f[t, 3] = e1 * a2 - e2 * a1
+        f[t, 4] = e2 * a0 - e0 * a2
+        f[t, 5] = e0 * a1 - e1 * a0
+        f[t, 6] = a1 * b2 - a2 * b1
+        f[t, 7] = a2 * b0 - a0 * b2
+        f[t, 8] = a0 * b1 - a1 * b0
+        f[t, _DET] = a0 * f[t, 0] + a1 * f[t, 1] + a2 * f[t, 2]
+        f[t, _MX] = geo[c, n, _G_MX]
+        f[t, _MY] = geo[c, n, _G_MY]
+        f[t, _Z] = zc
         o = opa[n]
-        ft[_OPA] = o
-        ft[_NRM] = gc[_G_N]
-        ft[_NRM + 1] = gc[_G_N + 1]
-        ft[_NRM + 2] = gc[_G_N + 2]
+        f[t, _OPA] = o
+        f[t, _NRM] = geo[c, n, _G_N]
+        f[t, _NRM + 1] = geo[c, n, _G_N + 1]
+        f[t, _NRM + 2] = geo[c, n, _G_N + 2]
         # Support radius² for the spans, slightly widened: min(9, 2 ln(255·o)).
         r2 = min(2.0 * np.log(255.0 * o), CUTOFF * CUTOFF) * (1 + 1e-6) + 1e-6
-        ft[_R2] = r2
-        ft[_A] = ft[0] * ft[0] + ft[3] * ft[3] - r2 * ft[6] * ft[6]
+        f[t, _R2] = r2
+        f[t, _A] = f[t, 0] * f[t, 0] + f[t, 3] * f[t, 3] - r2 * f[t, 6] * f[t, 6]
+        for i in range(3):
+            f[t, _C0 + i] = geo[c, n, _G_C0 + i]
+            f[t, _C1 + i] = geo[c, n, _G_C1 + i]
         cc = c if per_cam else 0
         for k in range(D):
-            ft[_COL + k] = col[cc, n, k]
+            f[t, _COL + k] = col[cc, n, k]
 
 
 # -- compositing ---------------------------------------------------------------------------
 @njit(**_KW, inline="always")
-def _span(ft, y, bx0, bx1, low_pass):
+def _span(f, s, y, bx0, bx1, low_pass):
     """Inclusive pixel x-range on row ``y`` that can hold the support of a surfel with
-    features ``ft`` and box columns [bx0, bx1] (x1 < x0 when empty).
+    row ``s`` of the feature table ``f`` and box columns [bx0, bx1] (x1 < x0 when empty).
 
     The 3D support ``ρ3d ≤ r²`` is ``A x² + 2 B x + Cq ≤ 0`` with ``q = J·(x, y, 1)``; its
     root interval is padded for rounding and joined with the low-pass disk; where the
     conic is not an interval (``A ≤ 0``) the whole box is kept.
     """
-    A = ft[_A]
+    A = f[s, _A]
     if not A > 0.0:
         return bx0, bx1
-    r2 = ft[_R2]
-    q0 = ft[1] * y + ft[2]
-    q1 = ft[4] * y + ft[5]
-    q2 = ft[7] * y + ft[8]
-    B = ft[0] * q0 + ft[3] * q1 - r2 * ft[6] * q2
+    r2 = f[s, _R2]
+    q0 = f[s, 1] * y + f[s, 2]
+    q1 = f[s, 4] * y + f[s, 5]
+    q2 = f[s, 7] * y + f[s, 8]
+    B = f[s, 0] * q0 + f[s, 3] * q1 - r2 * f[s, 6] * q2
     Cq = q0 * q0 + q1 * q1 - r2 * q2 * q2
     disc = B * B - A * Cq
     if disc >= 0.0:
@@ -715,12 +719,12 @@ def _span(ft, y, bx0, bx1, low_pass):
         lo = np.inf
         hi = -np.inf
     if low_pass > 0.0:
-        dy = ft[_MY] - y
+        dy = f[s, _MY] - y
         h2 = r2 * low_pass * low_pass - dy * dy
         if h2 >= 0.0:
             h = np.sqrt(h2) + 1e-6
-            lo = min(lo, ft[_MX] - h)
-            hi = max(hi, ft[_MX] + h)
+            lo = min(lo, f[s, _MX] - h)
+            hi = max(hi, f[s, _MX] + h)
     if lo > hi:
         return 0, -1
     return max(int(np.ceil(max(lo, bx0 - 1.0))), bx0), min(int(np.floor(min(hi, bx1 + 1.0))), bx1)
@@ -774,20 +778,19 @@ def _forward(
                     mid[px] = -1
                 for e in range(e0, row_off[r + 1]):
                     s = row_surf[e]
-                    ft = f[s]
-                    x0, x1 = _span(ft, y, tab_box[s, 0], tab_box[s, 2], low_pass)
+                    x0, x1 = _span(f, s, y, tab_box[s, 0], tab_box[s, 2], low_pass)
                     span[e, 0] = x0
                     span[e, 1] = x1
                     if x1 < x0:
                         continue
                     cnt += x1 - x0 + 1
-                    j0, j3, j6 = ft[0], ft[3], ft[6]
-                    b0 = ft[1] * y + ft[2]
-                    b1 = ft[4] * y + ft[5]
-                    b2 = ft[7] * y + ft[8]
-                    det, mx, zc, opa = ft[_DET], ft[_MX], ft[_Z], ft[_OPA]
-                    dy2 = (ft[_MY] - y) * (ft[_MY] - y) * inv_lp2
-                    nx, ny, nz = ft[_NRM], ft[_NRM + 1], ft[_NRM + 2]
+                    j0, j3, j6 = f[s, 0], f[s, 3], f[s, 6]
+                    b0 = f[s, 1] * y + f[s, 2]
+                    b1 = f[s, 4] * y + f[s, 5]
+                    b2 = f[s, 7] * y + f[s, 8]
+                    det, mx, zc, opa = f[s, _DET], f[s, _MX], f[s, _Z], f[s, _OPA]
+                    dy2 = (f[s, _MY] - y) * (f[s, _MY] - y) * inv_lp2
+                    nx, ny, nz = f[s, _NRM], f[s, _NRM + 1], f[s, _NRM + 2]
                     for px in range(x0, x1 + 1):
                         if done[px]:
                             continue
@@ -820,15 +823,14 @@ def _forward(
                         m = mscale * (1.0 - near / depth)
                         m1 = st[px, 1]
                         m2 = st[px, 2]
-                        ap = acc[px]
-                        ap[D + 5] += (m * m * ap[D] + m2 - 2.0 * m * m1) * w
+                        acc[px, D + 5] += (m * m * acc[px, D] + m2 - 2.0 * m * m1) * w
                         for k in range(D):
-                            ap[k] += w * ft[_COL + k]
-                        ap[D] += w
-                        ap[D + 1] += w * depth
-                        ap[D + 2] += w * nx
-                        ap[D + 3] += w * ny
-                        ap[D + 4] += w * nz
+                            acc[px, k] += w * f[s, _COL + k]
+                        acc[px, D] += w
+                        acc[px, D + 1] += w * depth
+                        acc[px, D + 2] += w * nx
+                        acc[px, D + 3] += w * ny
+                        acc[px, D + 4] += w * nz
                         st[px, 1] = m1 + w * m
                         st[px, 2] = m2 + w * m * m
                         if T > 0.5:
@@ -838,26 +840,26 @@ def _forward(
                         end[px] = e + 1
                 # Finish the row.
                 for px in range(W):
-                    ap = acc[px]
-                    a = ap[D]
+                    a = acc[px, D]
                     for k in range(D):
-                        o_col[c, py, px, k] = ap[k] + (1.0 - a) * bg[c, k]
+                        o_col[c, py, px, k] = acc[px, k] + (1.0 - a) * bg[c, k]
                     o_alpha[c, py, px, 0] = a
-                    o_de[c, py, px, 0] = ap[D + 1] / a if a > 0 else 0.0
-                    o_da[c, py, px, 0] = ap[D + 1]
+                    o_de[c, py, px, 0] = acc[px, D + 1] / a if a > 0 else 0.0
+                    o_da[c, py, px, 0] = acc[px, D + 1]
                     o_dm[c, py, px, 0] = med[px]
                     for i in range(3):
-                        o_nc[c, py, px, i] = ap[D + 2 + i]
+                        o_nc[c, py, px, i] = acc[px, D + 2 + i]
                         o_nw[c, py, px, i] = (
-                            ap[D + 2] * V[c, 0, i] + ap[D + 3] * V[c, 1, i] + ap[D + 4] * V[c, 2, i]
+                            acc[px, D + 2] * V[c, 0, i]
+                            + acc[px, D + 3] * V[c, 1, i]
+                            + acc[px, D + 4] * V[c, 2, i]
                         )
-                    o_dist[c, py, px, 0] = ap[D + 5]
-                    sp = sv[c, py, px]
-                    sp[0] = st[px, 0]
-                    sp[1] = a
-                    sp[2] = ap[D + 1]
-                    sp[3] = st[px, 1]
-                    sp[4] = st[px, 2]
+                    o_dist[c, py, px, 0] = acc[px, D + 5]
+                    sv[c, py, px, 0] = st[px, 0]
+                    sv[c, py, px, 1] = a
+                    sv[c, py, px, 2] = acc[px, D + 1]
+                    sv[c, py, px, 3] = st[px, 1]
+                    sv[c, py, px, 4] = st[px, 2]
                     six[c, py, px, 0] = end[px]
                     six[c, py, px, 1] = mid[px]
         pairs[th] = cnt
@@ -1022,10 +1024,9 @@ def _backward(
                 for k in range(D):
                     row_bg[r, k] = 0.0
                 for px in range(W):
-                    sp = sv[c, py, px]
-                    T[px] = sp[0]
+                    T[px] = sv[c, py, px, 0]
                     suffix[px] = 0.0
-                    a = sp[1]
+                    a = sv[c, py, px, 1]
                     ga = g_alpha[c * fa, py * fa, px * fa, 0]
                     for k in range(D):
                         gck = g_col[c * fc, py * fc, px * fc, k]
@@ -1036,7 +1037,7 @@ def _backward(
                     if a > 0:
                         gde = g_de[c * fe, py * fe, px * fe, 0] + g_de_n[c, py, px]
                         gz += gde / a
-                        ga -= gde * sp[2] / (a * a)
+                        ga -= gde * sv[c, py, px, 2] / (a * a)
                     gr[px, D] = ga
                     gr[px, D + 1] = gz
                     for i in range(3):
@@ -1047,30 +1048,27 @@ def _backward(
                         )
                     gr[px, D + 5] = g_dist[c * fd, py * fd, px * fd, 0]
                     gmed[px] = g_dm[c * fm, py * fm, px * fm, 0]
-                ends = six[c, py]
                 for e in range(row_off[r + 1] - 1, row_off[r] - 1, -1):
                     s = row_surf[e]
-                    ft = f[s]
                     slot = sbase[s] + py // band - tab_box[s, 1] // band
                     first = py == max(tab_box[s, 1], ya)
-                    ge = gslot[slot]
                     if first:
                         for k in range(_GCOL + D):
-                            ge[k] = 0.0
+                            gslot[slot, k] = 0.0
                     x0, x1 = span[e, 0], span[e, 1]
                     if x1 < x0:
                         continue
-                    j0, j3, j6 = ft[0], ft[3], ft[6]
-                    b0 = ft[1] * y + ft[2]
-                    b1 = ft[4] * y + ft[5]
-                    b2 = ft[7] * y + ft[8]
-                    det, mx, my, zc, opa = ft[_DET], ft[_MX], ft[_MY], ft[_Z], ft[_OPA]
+                    j0, j3, j6 = f[s, 0], f[s, 3], f[s, 6]
+                    b0 = f[s, 1] * y + f[s, 2]
+                    b1 = f[s, 4] * y + f[s, 5]
+                    b2 = f[s, 7] * y + f[s, 8]
+                    det, mx, my, zc, opa = f[s, _DET], f[s, _MX], f[s, _MY], f[s, _Z], f[s, _OPA]
                     dy2 = (my - y) * (my - y) * inv_lp2
-                    nx, ny, nz = ft[_NRM], ft[_NRM + 1], ft[_NRM + 2]
+                    nx, ny, nz = f[s, _NRM], f[s, _NRM + 1], f[s, _NRM + 2]
                     gq0x = gq0 = gq1x = gq1 = gq2x = gq2 = 0.0
                     g_det = g_mx = g_my = g_zc = g_opa = gn0 = gn1 = gn2 = 0.0
                     for px in range(x0, x1 + 1):
-                        if e >= ends[px, 0]:
+                        if e >= six[c, py, px, 0]:
                             continue
                         x = float(px)
                         q2 = j6 * x + b2
@@ -1102,27 +1100,25 @@ def _backward(
                         T[px] = Ti
                         w = alpha * Ti
                         m = mscale * (1.0 - near / depth)
-                        sp = sv[c, py, px]
-                        sw = sp[1]
-                        m1 = sp[3]
-                        m2 = sp[4]
-                        g = gr[px]
-                        g_z = g[D + 1]
-                        g_d = g[D + 5]
+                        sw = sv[c, py, px, 1]
+                        m1 = sv[c, py, px, 3]
+                        m2 = sv[c, py, px, 4]
+                        g_z = gr[px, D + 1]
+                        g_d = gr[px, D + 5]
                         # dL/dw with the other pairs' weights fixed.
-                        g_w = g[D] + g_z * depth + g_d * (m * m * sw + m2 - 2.0 * m * m1)
-                        g_w += g[D + 2] * nx + g[D + 3] * ny + g[D + 4] * nz
+                        g_w = gr[px, D] + g_z * depth + g_d * (m * m * sw + m2 - 2.0 * m * m1)
+                        g_w += gr[px, D + 2] * nx + gr[px, D + 3] * ny + gr[px, D + 4] * nz
                         for k in range(D):
-                            g_w += g[k] * ft[_COL + k]
-                            ge[_GCOL + k] += g[k] * w
-                        gn0 += g[D + 2] * w
-                        gn1 += g[D + 3] * w
-                        gn2 += g[D + 4] * w
+                            g_w += gr[px, k] * f[s, _COL + k]
+                            gslot[slot, _GCOL + k] += gr[px, k] * w
+                        gn0 += gr[px, D + 2] * w
+                        gn1 += gr[px, D + 3] * w
+                        gn2 += gr[px, D + 4] * w
                         g_alpha_ = Ti * g_w - suffix[px] * one_a
                         suffix[px] += g_w * w
                         dm = mscale * near / (depth * depth)
                         g_depth = g_z * w + g_d * 2.0 * w * (m * sw - m1) * dm
-                        if e == ends[px, 1]:
+                        if e == six[c, py, px, 1]:
                             g_depth += gmed[px]
                         # alpha = min(o·exp(−ρ/2), 0.99): no gradient past the cap.
                         g_raw = g_alpha_ if raw <= a_max else 0.0
@@ -1145,95 +1141,102 @@ def _backward(
                             g_mx += g_rho * 2.0 * (mx - x) * inv_lp2
                             g_my += g_rho * 2.0 * (my - y) * inv_lp2
                             g_zc += g_depth
-                    ge[0] += gq0x
-                    ge[1] += gq0 * y
-                    ge[2] += gq0
-                    ge[3] += gq1x
-                    ge[4] += gq1 * y
-                    ge[5] += gq1
-                    ge[6] += gq2x
-                    ge[7] += gq2 * y
-                    ge[8] += gq2
-                    ge[_DET] += g_det
-                    ge[_MX] += g_mx
-                    ge[_MY] += g_my
-                    ge[_Z] += g_zc
-                    ge[_OPA] += g_opa
-                    ge[_NRM] += gn0
-                    ge[_NRM + 1] += gn1
-                    ge[_NRM + 2] += gn2
+                    gslot[slot, 0] += gq0x
+                    gslot[slot, 1] += gq0 * y
+                    gslot[slot, 2] += gq0
+                    gslot[slot, 3] += gq1x
+                    gslot[slot, 4] += gq1 * y
+                    gslot[slot, 5] += gq1
+                    gslot[slot, 6] += gq2x
+                    gslot[slot, 7] += gq2 * y
+                    gslot[slot, 8] += gq2
+                    gslot[slot, _DET] += g_det
+                    gslot[slot, _MX] += g_mx
+                    gslot[slot, _MY] += g_my
+                    gslot[slot, _Z] += g_zc
+                    gslot[slot, _OPA] += g_opa
+                    gslot[slot, _NRM] += gn0
+                    gslot[slot, _NRM + 1] += gn1
+                    gslot[slot, _NRM + 2] += gn2
 
 
 @njit(**_KW, parallel=True)
-def _reduce(
-    gslot, sbase, tix, vis, tab_box, geo, f, D, band, n_threads, g_geo, g_m2d, g_opa, g_col
-):
+def _reduce(gslot, sbase, tab_cn, tix, f, D, n_threads, g_tab, g_geo, g_m2d, g_opa, g_col):
     """Per surfel: its slots summed in band order per camera, then the chain rule of the
     adjugate ``J``, ``det`` and the centre ``(μx z, μy z, z)`` → gradients of ``geo``
-    (tangent columns, depth, normal) and of ``means2d``; opacity (and shared colours)
-    summed over the cameras in camera order."""
-    C, N = vis.shape
+    (tangent columns, depth, normal) and of ``means2d``; opacity and colour summed over
+    the cameras in camera order. First in table order (slots and features are read in
+    memory order) into ``g_tab`` (S, 13 + D): g_c0, g_c1, g_z, g_n, g_means2d, g_opacity,
+    g_colour; then per surfel, gathering its cameras' rows."""
+    S = tab_cn.shape[0]
+    C = g_geo.shape[0]
+    N = g_geo.shape[1]
     per_cam = g_col.shape[0] > 1
     for th in prange(n_threads):
-        gs = np.empty(_GCOL)
-        ga = np.empty(3)
-        gb = np.empty(3)
-        ge = np.empty(3)
-        for n in range(th, N, n_threads):
+        gs = np.empty(_GCOL + D)
+        for t in range(th * S // n_threads, (th + 1) * S // n_threads):
+            for k in range(_GCOL + D):
+                gs[k] = 0.0
+            for j in range(sbase[t], sbase[t + 1]):
+                for k in range(_GCOL + D):
+                    gs[k] += gslot[j, k]
+            a0, a1, a2 = f[t, _C0], f[t, _C0 + 1], f[t, _C0 + 2]
+            b0, b1, b2 = f[t, _C1], f[t, _C1 + 1], f[t, _C1 + 2]
+            zc, mx, my = f[t, _Z], f[t, _MX], f[t, _MY]
+            e0, e1, e2 = mx * zc, my * zc, zc
+            gd = gs[_DET]
+            # det = c0 · J0 with J0 = c1 × centre: gJ0 += gd·c0, g_c0 += gd·J0.
+            p0, p1, p2 = gs[0] + gd * a0, gs[1] + gd * a1, gs[2] + gd * a2
+            q0, q1, q2 = gs[3], gs[4], gs[5]
+            r0, r1, r2 = gs[6], gs[7], gs[8]
+            # J0 = c1 × e: g_c1 += e × gJ0, g_e += gJ0 × c1.
+            # J1 = e × c0: g_e += c0 × gJ1, g_c0 += gJ1 × e.
+            # J2 = c0 × c1: g_c0 += c1 × gJ2, g_c1 += gJ2 × c0.
+            g_tab[t, 0] = gd * f[t, 0] + (q1 * e2 - q2 * e1) + (b1 * r2 - b2 * r1)
+            g_tab[t, 1] = gd * f[t, 1] + (q2 * e0 - q0 * e2) + (b2 * r0 - b0 * r2)
+            g_tab[t, 2] = gd * f[t, 2] + (q0 * e1 - q1 * e0) + (b0 * r1 - b1 * r0)
+            g_tab[t, 3] = (e1 * p2 - e2 * p1) + (r1 * a2 - r2 * a1)
+            g_tab[t, 4] = (e2 * p0 - e0 * p2) + (r2 * a0 - r0 * a2)
+            g_tab[t, 5] = (e0 * p1 - e1 * p0) + (r0 * a1 - r1 * a0)
+            ge0 = (p1 * b2 - p2 * b1) + (a1 * q2 - a2 * q1)
+            ge1 = (p2 * b0 - p0 * b2) + (a2 * q0 - a0 * q2)
+            ge2 = (p0 * b1 - p1 * b0) + (a0 * q1 - a1 * q0)
+            g_tab[t, 6] = gs[_Z] + ge0 * mx + ge1 * my + ge2
+            g_tab[t, 7] = gs[_NRM]
+            g_tab[t, 8] = gs[_NRM + 1]
+            g_tab[t, 9] = gs[_NRM + 2]
+            g_tab[t, 10] = gs[_MX] + ge0 * zc
+            g_tab[t, 11] = gs[_MY] + ge1 * zc
+            g_tab[t, 12] = gs[_OPA]
+            for k in range(D):
+                g_tab[t, 13 + k] = gs[_GCOL + k]
+    for th in prange(n_threads):
+        for n in range(th * N // n_threads, (th + 1) * N // n_threads):
             go = 0.0
             if not per_cam:
                 for k in range(D):
                     g_col[0, n, k] = 0.0
             for c in range(C):
-                gg = g_geo[c, n]
-                for k in range(gg.shape[0]):
-                    gg[k] = 0.0
-                if per_cam:
-                    for k in range(D):
-                        g_col[c, n, k] = 0.0
-                if not vis[c, n]:
+                t = tix[c * N + n]
+                for k in range(_G_WIDTH):
+                    g_geo[c, n, k] = 0.0
+                if t < 0:
                     g_m2d[c, n, 0] = 0.0
                     g_m2d[c, n, 1] = 0.0
+                    if per_cam:
+                        for k in range(D):
+                            g_col[c, n, k] = 0.0
                     continue
-                t = tix[c * N + n]
-                gs[:] = 0.0
-                for j in range(sbase[t], sbase[t + 1]):
-                    for k in range(_GCOL):
-                        gs[k] += gslot[j, k]
-                    for k in range(D):
-                        g_col[c if per_cam else 0, n, k] += gslot[j, _GCOL + k]
-                go += gs[_OPA]
-                gc = geo[c, n]
-                a = (gc[_G_C0], gc[_G_C0 + 1], gc[_G_C0 + 2])
-                bb = (gc[_G_C1], gc[_G_C1 + 1], gc[_G_C1 + 2])
-                zc, mx, my = gc[_G_Z], gc[_G_MX], gc[_G_MY]
-                e = (mx * zc, my * zc, zc)
-                ft = f[t]
-                g_det = gs[_DET]
-                # det = c0 · J0 with J0 = c1 × centre.
-                j0 = (gs[0] + g_det * a[0], gs[1] + g_det * a[1], gs[2] + g_det * a[2])
-                j1 = (gs[3], gs[4], gs[5])
-                j2 = (gs[6], gs[7], gs[8])
-                for i in range(3):
-                    i1 = (i + 1) % 3
-                    i2 = (i + 2) % 3
-                    # J0 = c1 × e: g_c1 += e × gJ0, g_e += gJ0 × c1.
-                    # J1 = e × c0: g_e += c0 × gJ1, g_c0 += gJ1 × e.
-                    # J2 = c0 × c1: g_c0 += c1 × gJ2, g_c1 += gJ2 × c0.
-                    ga[i] = (
-                        g_det * ft[i]
-                        + (j1[i1] * e[i2] - j1[i2] * e[i1])
-                        + (bb[i1] * j2[i2] - bb[i2] * j2[i1])
-                    )
-                    gb[i] = (e[i1] * j0[i2] - e[i2] * j0[i1]) + (j2[i1] * a[i2] - j2[i2] * a[i1])
-                    ge[i] = (j0[i1] * bb[i2] - j0[i2] * bb[i1]) + (a[i1] * j1[i2] - a[i2] * j1[i1])
-                for i in range(3):
-                    gg[_G_C0 + i] = ga[i]
-                    gg[_G_C1 + i] = gb[i]
-                    gg[_G_N + i] = gs[_NRM + i]
-                gg[_G_Z] = gs[_Z] + ge[0] * mx + ge[1] * my + ge[2]
-                g_m2d[c, n, 0] = gs[_MX] + ge[0] * zc
-                g_m2d[c, n, 1] = gs[_MY] + ge[1] * zc
+                for k in range(10):
+                    g_geo[c, n, k] = g_tab[t, k]
+                g_m2d[c, n, 0] = g_tab[t, 10]
+                g_m2d[c, n, 1] = g_tab[t, 11]
+                go += g_tab[t, 12]
+                for k in range(D):
+                    if per_cam:
+                        g_col[c, n, k] = g_tab[t, 13 + k]
+                    else:
+                        g_col[0, n, k] += g_tab[t, 13 + k]
             g_opa[n] = go
 
 
