@@ -205,6 +205,9 @@ class _Raster(torch.autograd.Function):
         opa = _np(opacities)
         col = _np(colors).reshape(1 if colors.dim() == 2 else C, N, D)
         bg64 = np.zeros((C, D)) if bg is None else _np(bg)
+        # Row 0: ones, rows 1…C: the backgrounds, in the outputs' dtype.
+        bg_out = np.ones((1 + C, D), dtype=npdt)
+        bg_out[1:] = bg64
         # Culling, boxes, sorting and row lists.
         box = np.empty((C, N, 4), dtype=np.int64)
         vis = np.empty((C, N), dtype=np.bool_)
@@ -224,7 +227,7 @@ class _Raster(torch.autograd.Function):
         inv_lp2 = 1.0 / (low_pass * low_pass) if low_pass > 0 else 0.0
         _forward(
             f, row_off, row_surf, tab_box, C, W, H, D, near, far, inv_lp2, low_pass,
-            CUTOFF * CUTOFF, ALPHA_MIN, ALPHA_MAX, T_MIN, bg64, V, nth, BAND,
+            CUTOFF * CUTOFF, ALPHA_MIN, ALPHA_MAX, T_MIN, bg is not None, bg_out, V, nth, BAND,
             span, sv, six, *outs[:7], outs[9], pairs,
         )  # fmt: skip
         eps = float(torch.finfo(dtype).tiny ** 0.5)
@@ -295,6 +298,26 @@ def _grad_arg(g: Tensor | None, k: int) -> tuple[np.ndarray, int]:
     if g.dim() == 4 and g.stride()[:3] == (0, 0, 0):
         return _np(g[:1, :1, :1]), 0
     return _np(g), 1
+
+
+# exp(x) for x in [−4.5, 0] (x = −ρ/2 with ρ ≤ 9), inlined in the per-pair loops (a libm
+# call there spills every live register): x = −i·ln2/32 + r, |r| ≤ ln2/64, exp(x) =
+# 2^(−i/32)·p(r) with p the degree-6 Taylor polynomial (truncation < 4e-18); within
+# 2 ulp of the correctly rounded value. ln2/32 is split in two so that i·_LN2_32_HI is
+# exact.
+_EXP_TABLE = np.exp2(-np.arange(224) / 32.0)
+_LN2_32_HI = 0.021660849452018738
+_LN2_32_LO = -5.952044687368025e-11
+_INV_LN2_32 = 46.16624130844683
+
+
+@njit(**_KW, inline="always")
+def _exp_neg(x):
+    """exp(x) for −4.5 ≤ x ≤ 0 (see above)."""
+    i = int(-x * _INV_LN2_32 + 0.5)
+    r = x + i * _LN2_32_HI + i * _LN2_32_LO
+    p = 1.0 + r * (1.0 + r * (0.5 + r * (1.0 / 6 + r * (1.0 / 24 + r * (1.0 / 120 + r / 720)))))
+    return _EXP_TABLE[i] * p
 
 
 # -- projection ---------------------------------------------------------------------------
@@ -733,15 +756,16 @@ def _span(f, s, y, bx0, bx1, low_pass):
 @njit(**_KW, parallel=True)
 def _forward(
     f, row_off, row_surf, tab_box, C, W, H, D, near, far, inv_lp2, low_pass, r2max, a_min,
-    a_max, t_min, bg, V, n_threads, band, span, sv, six, o_col, o_alpha, o_de, o_da, o_dm,
-    o_nc, o_nw, o_dist, pairs,
+    a_max, t_min, has_bg, bg_out, V, n_threads, band, span, sv, six, o_col, o_alpha, o_de,
+    o_da, o_dm, o_nc, o_nw, o_dist, pairs,
 ):  # fmt: skip
     """Front-to-back compositing per band of rows, bands interleaved over the threads.
 
     Each row walks its surfels in depth order, each over its span (written to ``span``),
     so every pixel sees its surfels front to back; at the row's end its outputs are
-    finished: ``o_col`` Σw·colour + (1 − alpha)·bg, ``o_alpha`` Σw, ``o_de`` Σw·z / Σw,
-    ``o_da`` Σw·z, ``o_dm`` median depth, ``o_nc`` Σw·n, ``o_nw`` the same · R,
+    finished: ``o_col`` Σw·colour (+ (1 − alpha)·background when ``has_bg``; ``bg_out``
+    holds ones, then the backgrounds, in the outputs' dtype), ``o_alpha`` Σw, ``o_de``
+    Σw·z / Σw, ``o_da`` Σw·z, ``o_dm`` median depth, ``o_nc`` Σw·n, ``o_nw`` the same · R,
     ``o_dist`` distortion. Kept for the backward pass: ``sv`` (C, H, W, 5) = final
     transmittance, Σw, Σw·z, Σw·m, Σw·m² and ``six`` (C, H, W, 2) = end of the pixel's
     blended run (entry index, exclusive) and its median entry (−1 if none).
@@ -791,6 +815,9 @@ def _forward(
                     det, mx, zc, opa = f[s, _DET], f[s, _MX], f[s, _Z], f[s, _OPA]
                     dy2 = (f[s, _MY] - y) * (f[s, _MY] - y) * inv_lp2
                     nx, ny, nz = f[s, _NRM], f[s, _NRM + 1], f[s, _NRM + 2]
+                    # 1/depth = q2/det (or 1/z): no division per pair for m.
+                    idet = 1.0 / det if det != 0.0 else 0.0
+                    izc = 1.0 / zc
                     for px in range(x0, x1 + 1):
                         if done[px]:
                             continue
@@ -803,15 +830,17 @@ def _forward(
                         v = (j3 * x + b1) * inv
                         rho = u * u + v * v
                         depth = det * inv
+                        rd = q2 * idet
                         if use_lp:
                             dx = mx - x
                             rho2 = dx * dx * inv_lp2 + dy2
                             if not rho <= rho2:
                                 rho = rho2
                                 depth = zc
+                                rd = izc
                         if rho > r2max or depth < near:
                             continue
-                        alpha = min(opa * np.exp(-0.5 * rho), a_max)
+                        alpha = min(opa * _exp_neg(-0.5 * rho), a_max)
                         if alpha < a_min:
                             continue
                         T = st[px, 0]
@@ -820,7 +849,7 @@ def _forward(
                             done[px] = True
                             continue
                         w = alpha * T
-                        m = mscale * (1.0 - near / depth)
+                        m = mscale * (1.0 - near * rd)
                         m1 = st[px, 1]
                         m2 = st[px, 2]
                         acc[px, D + 5] += (m * m * acc[px, D] + m2 - 2.0 * m * m1) * w
@@ -842,8 +871,16 @@ def _forward(
                 for px in range(W):
                     a = acc[px, D]
                     for k in range(D):
-                        o_col[c, py, px, k] = acc[px, k] + (1.0 - a) * bg[c, k]
+                        o_col[c, py, px, k] = acc[px, k]
                     o_alpha[c, py, px, 0] = a
+                    if has_bg:
+                        # over_background in the outputs' dtype: the same bits as the
+                        # formula applied to the bare render.
+                        for k in range(D):
+                            o_col[c, py, px, k] = (
+                                o_col[c, py, px, k]
+                                + (bg_out[0, k] - o_alpha[c, py, px, 0]) * bg_out[1 + c, k]
+                            )
                     o_de[c, py, px, 0] = acc[px, D + 1] / a if a > 0 else 0.0
                     o_da[c, py, px, 0] = acc[px, D + 1]
                     o_dm[c, py, px, 0] = med[px]
@@ -1067,6 +1104,8 @@ def _backward(
                     nx, ny, nz = f[s, _NRM], f[s, _NRM + 1], f[s, _NRM + 2]
                     gq0x = gq0 = gq1x = gq1 = gq2x = gq2 = 0.0
                     g_det = g_mx = g_my = g_zc = g_opa = gn0 = gn1 = gn2 = 0.0
+                    idet = 1.0 / det if det != 0.0 else 0.0
+                    izc = 1.0 / zc
                     for px in range(x0, x1 + 1):
                         if e >= six[c, py, px, 0]:
                             continue
@@ -1080,17 +1119,19 @@ def _backward(
                         rho = u * u + v * v
                         depth3 = det * inv
                         depth = depth3
+                        rd = q2 * idet
                         use3 = True
                         if use_lp:
                             dx = mx - x
                             rho2 = dx * dx * inv_lp2 + dy2
                             if not rho <= rho2:
                                 use3 = False
+                                rd = izc
                                 rho = rho2
                                 depth = zc
                         if rho > r2max or depth < near:
                             continue
-                        gauss = np.exp(-0.5 * rho)
+                        gauss = _exp_neg(-0.5 * rho)
                         raw = opa * gauss
                         alpha = min(raw, a_max)
                         if alpha < a_min:
@@ -1099,7 +1140,7 @@ def _backward(
                         Ti = T[px] * one_a  # transmittance before this pair
                         T[px] = Ti
                         w = alpha * Ti
-                        m = mscale * (1.0 - near / depth)
+                        m = mscale * (1.0 - near * rd)
                         sw = sv[c, py, px, 1]
                         m1 = sv[c, py, px, 3]
                         m2 = sv[c, py, px, 4]
@@ -1116,7 +1157,7 @@ def _backward(
                         gn2 += gr[px, D + 4] * w
                         g_alpha_ = Ti * g_w - suffix[px] * one_a
                         suffix[px] += g_w * w
-                        dm = mscale * near / (depth * depth)
+                        dm = mscale * near * rd * rd
                         g_depth = g_z * w + g_d * 2.0 * w * (m * sw - m1) * dm
                         if e == six[c, py, px, 1]:
                             g_depth += gmed[px]
