@@ -220,7 +220,7 @@ class _Raster(torch.autograd.Function):
         tab_box = box.reshape(C * N, 4)[tab_cn] if S else np.zeros((0, 4), dtype=np.int64)
         E = row_surf.shape[0]
         span = np.empty((E, 2), dtype=np.int32)
-        sv = np.empty((C, H, W, 5))
+        sv = np.empty((C, H, W, 6))
         six = np.empty((C, H, W, 2), dtype=np.int32)
         outs = [np.empty((C, H, W, D if k == "D" else k), dtype=npdt) for k in _OUT_CHANNELS]
         pairs = np.zeros(nth, dtype=np.int64)
@@ -766,8 +766,8 @@ def _forward(
     finished: ``o_col`` Σw·colour (+ (1 − alpha)·background when ``has_bg``; ``bg_out``
     holds ones, then the backgrounds, in the outputs' dtype), ``o_alpha`` Σw, ``o_de``
     Σw·z / Σw, ``o_da`` Σw·z, ``o_dm`` median depth, ``o_nc`` Σw·n, ``o_nw`` the same · R,
-    ``o_dist`` distortion. Kept for the backward pass: ``sv`` (C, H, W, 5) = final
-    transmittance, Σw, Σw·z, Σw·m, Σw·m² and ``six`` (C, H, W, 2) = end of the pixel's
+    ``o_dist`` distortion. Kept for the backward pass: ``sv`` (C, H, W, 6) = final
+    transmittance, Σw, Σw·z, Σw·m, Σw·m², Σw·z / Σw (0 where Σw = 0) and ``six`` (C, H, W, 2) = end of the pixel's
     blended run (entry index, exclusive) and its median entry (−1 if none).
     """
     n_bpc = (H + band - 1) // band
@@ -881,7 +881,8 @@ def _forward(
                                 o_col[c, py, px, k]
                                 + (bg_out[0, k] - o_alpha[c, py, px, 0]) * bg_out[1 + c, k]
                             )
-                    o_de[c, py, px, 0] = acc[px, D + 1] / a if a > 0 else 0.0
+                    de = acc[px, D + 1] / a if a > 0 else 0.0
+                    o_de[c, py, px, 0] = de
                     o_da[c, py, px, 0] = acc[px, D + 1]
                     o_dm[c, py, px, 0] = med[px]
                     for i in range(3):
@@ -897,6 +898,7 @@ def _forward(
                     sv[c, py, px, 2] = acc[px, D + 1]
                     sv[c, py, px, 3] = st[px, 1]
                     sv[c, py, px, 4] = st[px, 2]
+                    sv[c, py, px, 5] = de
                     six[c, py, px, 0] = end[px]
                     six[c, py, px, 1] = mid[px]
         pairs[th] = cnt
@@ -904,8 +906,7 @@ def _forward(
 
 @njit(**_KW, inline="always")
 def _expected_depth(sv, c, y, x):
-    a = sv[c, y, x, 1]
-    return sv[c, y, x, 2] / a if a > 0 else 0.0
+    return sv[c, y, x, 5]
 
 
 @njit(**_KW, inline="always")
