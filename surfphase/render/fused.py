@@ -513,6 +513,53 @@ def _hi(a, b, big):
     return v
 
 
+@njit(**_KW, inline="always")
+def _support_rows(a0, a1, a2, b0, b1, b2, e0, e1, e2, r2, my, low_pass, y0, y1):
+    """Rows [ya, yb] ⊆ [y0, y1] on which a surfel's row spans (:func:`_span`) can be
+    non-empty (yb < ya when none).
+
+    With ``q = J·(x, y, 1)`` (J the adjugate of ``M = [c0 c1 centre]``) the 3D support
+    ``q0² + q1² − r² q2² ≤ 0`` meets row y iff the discriminant of its quadratic in x,
+    ``α y² + 2β y + γ``, is ≥ 0; with ``A > 0`` (bounded in x) and ``α < 0`` that is an
+    interval of y, padded by 1e-3 px for rounding, joined with the low-pass disk's rows
+    ``|y − μy| ≤ r·low_pass``. Otherwise (unbounded or degenerate conic) the box rows
+    are kept.
+    """
+    # Rows of J: c1 × centre, centre × c0, c0 × c1; columns x, y, 1.
+    jx0, jy0, j10 = b1 * e2 - b2 * e1, b2 * e0 - b0 * e2, b0 * e1 - b1 * e0
+    jx1, jy1, j11 = e1 * a2 - e2 * a1, e2 * a0 - e0 * a2, e0 * a1 - e1 * a0
+    jx2, jy2, j12 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    A = jx0 * jx0 + jx1 * jx1 - r2 * jx2 * jx2
+    qxy = jx0 * jy0 + jx1 * jy1 - r2 * jx2 * jy2
+    qx1 = jx0 * j10 + jx1 * j11 - r2 * jx2 * j12
+    qyy = jy0 * jy0 + jy1 * jy1 - r2 * jy2 * jy2
+    qy1 = jy0 * j10 + jy1 * j11 - r2 * jy2 * j12
+    q11 = j10 * j10 + j11 * j11 - r2 * j12 * j12
+    al = qxy * qxy - A * qyy
+    be = qxy * qx1 - A * qy1
+    ga = qx1 * qx1 - A * q11
+    if not (A > 0.0 and al < 0.0):
+        return y0, y1
+    lo = np.inf
+    hi = -np.inf
+    d = be * be - al * ga
+    if d >= 0.0:
+        root = np.sqrt(d)
+        lo = (-be + root) / al
+        hi = (-be - root) / al
+    if low_pass > 0.0:
+        h = np.sqrt(r2) * low_pass
+        lo = min(lo, my - h)
+        hi = max(hi, my + h)
+    if not (lo <= hi):  # empty, or NaN from a degenerate surfel: keep the box rows
+        return (y0, y1) if np.isnan(lo) or np.isnan(hi) else (y0, y0 - 1)
+    lo -= 1e-3 + 1e-6 * abs(lo)
+    hi += 1e-3 + 1e-6 * abs(hi)
+    ya = max(y0, int(np.ceil(min(max(lo, y0 - 1.0), y1 + 1.0))))
+    yb = min(y1, int(np.floor(max(min(hi, y1 + 1.0), y0 - 1.0))))
+    return (ya, yb) if ya <= yb else (y0, y0 - 1)
+
+
 @njit(**_KW, parallel=True)
 def _cull(geo, opa, W, H, near, far, low_pass, n_threads, box, vis, radii):
     """Screen boxes (:func:`surfphase.render.projection.bounding_boxes`), visibility and
@@ -549,13 +596,17 @@ def _cull(geo, opa, W, H, near, far, low_pass, n_threads, box, vis, radii):
         y0 = max(int(np.floor(min(max(lo_y, -big), big))), 0)
         x1 = min(int(np.ceil(min(max(hi_x, -big), big))), W - 1)
         y1 = min(int(np.ceil(min(max(hi_y, -big), big))), H - 1)
+        v = zc >= near and zc <= far and x0 <= x1 and y0 <= y1 and opa[n] >= ALPHA_MIN
+        vis[c, n] = v
+        radii[c, n] = int(np.ceil(max((hi_x - lo_x) / 2, (hi_y - lo_y) / 2))) if v else 0
+        if v:
+            # Only the rows the support can reach get (row, surfel) entries.
+            r2 = min(2.0 * np.log(255.0 * opa[n]), CUTOFF * CUTOFF) * (1 + 1e-6) + 1e-6
+            y0, y1 = _support_rows(a0, a1, a2, b0, b1, b2, e0, e1, e2, r2, my, low_pass, y0, y1)
         box[c, n, 0] = x0
         box[c, n, 1] = y0
         box[c, n, 2] = x1
         box[c, n, 3] = y1
-        v = zc >= near and zc <= far and x0 <= x1 and y0 <= y1 and opa[n] >= ALPHA_MIN
-        vis[c, n] = v
-        radii[c, n] = int(np.ceil(max((hi_x - lo_x) / 2, (hi_y - lo_y) / 2))) if v else 0
 
 
 @njit(**_KW)
@@ -664,7 +715,8 @@ def _bin(geo, vis, box, H, band):
         cn = tab_cn[t]
         c = cn // N
         n = cn - c * N
-        sbase[t + 1] = sbase[t] + box[c, n, 3] // band - box[c, n, 1] // band + 1
+        rows = box[c, n, 3] // band - box[c, n, 1] // band + 1
+        sbase[t + 1] = sbase[t] + (rows if box[c, n, 3] >= box[c, n, 1] else 0)
     return tix, row_off, row_surf, tab_cn, sbase
 
 
