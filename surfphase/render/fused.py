@@ -9,9 +9,11 @@ backward passes; two :class:`torch.autograd.Function` s tie them to autograd:
   that ``means2d.grad`` is the screen-space gradient densification reads, as in the
   sparse backend (at fixed depth and tangent columns).
 * :class:`_Raster` (means2d, that table, opacities, colours, backgrounds → every public
-  output). Forward: culling and screen boxes (:func:`surfphase.render.projection.bounding_boxes`'s
-  rule), then per camera a stable radix sort by centre depth and a counting sort into
-  per-image-row lists (each row's list in depth order); the visible surfels' features
+  output). Forward: culling and screen boxes
+  (:func:`surfphase.render.projection.bounding_boxes`' rule; a surfel is listed only on
+  the box rows its support can reach), then per camera a stable radix sort by centre
+  depth and a counting sort into per-image-row lists (each row's list in depth order);
+  the visible surfels' features
   (adjugate ``J``, ``det``, centre, opacity, normal, colour) sit in a table in (camera,
   box top) order so a row's surfels are close in memory. Then, parallel over bands of
   :data:`BAND` rows (bands interleaved over the threads), each row walks its surfels
@@ -36,7 +38,8 @@ The kernels run on numba's ``workqueue`` threading layer (chosen in :mod:`surfph
 its idle workers sleep on a condition variable rather than spin, and it brings no second
 OpenMP runtime beside PyTorch's), with as many threads as ``torch.get_num_threads()``
 (capped by numba's pool size). They are compiled on first use and cached on disk
-(``cache=True``). :func:`depth_normals_fused` is the CPU form of
+(``cache=True``; the first render in a fresh cache compiles for ~25 s, later processes
+load them in under a second). :func:`depth_normals_fused` is the CPU form of
 :func:`surfphase.render.rasterize.depth_normals` used by the sparse backend.
 """
 
