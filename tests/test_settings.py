@@ -81,3 +81,32 @@ def test_stage_modules_hold_the_moved_defaults():
     assert stage2.FIT_OVERRIDES is fit_params.FIT_OVERRIDES
     assert mesh_stage.DEFAULTS is mesh_params.DEFAULTS
     assert views.DEFAULTS is views_params.DEFAULTS
+
+
+def test_each_stage_default_is_written_once():
+    """The config schema gives no default for a key whose stage module holds it (the
+    module's dict is the one source; the workflow merges it), and the refine block's
+    keys are exactly those of its defaults."""
+    from pathlib import Path
+
+    import yaml
+
+    from surfphase.fit.params import DEFAULTS as FIT
+    from surfphase.fit.params import STAGE2_DEFAULTS
+    from surfphase.masks.params import DEFAULTS as MASKS
+    from surfphase.mesh.params import DEFAULTS as MESH
+    from surfphase.views_params import REFINE_DEFAULTS
+
+    root = Path(__file__).resolve().parents[1]
+    schema = yaml.safe_load((root / "workflow/schemas/config.schema.yaml").read_text())
+    owners = {"fit": FIT, "fit2": STAGE2_DEFAULTS, "masks": MASKS, "mesh": MESH}
+    owners["refine"] = REFINE_DEFAULTS
+    twice = {
+        f"{block}.{key}"
+        for block, defaults in owners.items()
+        for key, prop in schema["properties"][block].get("properties", {}).items()
+        if key in defaults and "default" in prop
+    }
+    assert not twice
+    assert set(schema["properties"]["refine"]["properties"]) == set(REFINE_DEFAULTS)
+    assert STAGE2_DEFAULTS["far_views"] == REFINE_DEFAULTS["far_views"]

@@ -7,6 +7,8 @@ workflow checks the config's keys against them while it builds the DAG
 
 from __future__ import annotations
 
+from surfphase.views_params import REFINE_DEFAULTS
+
 #: Every hyperparameter of the fit, with its default (mirrored in config.yaml ``fit:``).
 #: Units are given per entry; ``L`` is the scene extent in metres.
 DEFAULTS: dict = {
@@ -131,7 +133,8 @@ STAGE2_DEFAULTS: dict = {
     "weight_inputs": 1.0,  # photometric weight of each input view
     "weight_near": 0.5,  # ... of each refined orbit view not in far_views
     "weight_far": 0.25,  # ... of each refined orbit view in far_views
-    "far_views": [4, 5, 6, 7, 8],  # orbit view numbers (orbitNN) that count as far
+    # orbit view numbers (orbitNN) that count as far: those the refinement calls far
+    "far_views": list(REFINE_DEFAULTS["far_views"]),
     "views_per_step": 4,  # refined views rendered per step (0: all of them)
     "bg_alpha_max": 0.02,  # stage-1 alpha below which a refined pixel is background
 }

@@ -20,10 +20,11 @@ the low-pass term is centred on the projected surfel centre (2DGS: the centre of
 projected 3σ ellipse's box, which differs slightly under perspective).
 
 Backends: ``backend`` names an entry of :data:`BACKENDS` (``"auto"``: the fused numba
-backend on the CPU, the sparse PyTorch one on CUDA), a function with the signature
-of :func:`surfphase.render.sparse.rasterize_sparse` returning the same raw
-accumulations; :func:`finish_outputs` turns those into the public outputs, so a fused
-(e.g. Triton) backend only has to produce per-pixel sums and per-surfel buffers.
+backend on the CPU, the sparse PyTorch one on CUDA or when ``viewmats`` / ``Ks`` require
+grad). The sparse backend returns raw accumulations (per-pixel sums and per-surfel
+buffers) that :func:`finish_outputs` turns into the public outputs; the fused backend
+(:func:`surfphase.render.fused.rasterize_fused`) does all of it, projection and output
+finishing included, in numba kernels with hand-written gradients.
 """
 
 from __future__ import annotations
@@ -43,6 +44,8 @@ BACKENDS = {
     "sparse": "surfphase.render.sparse:rasterize_sparse",
     "fused": "surfphase.render.fused:rasterize_fused",
 }
+# The fused backend returns the public outputs itself (its output finishing is fused
+# too); the others return raw accumulations for :func:`finish_outputs`.
 
 
 def rasterize_surfels(
@@ -82,12 +85,13 @@ def rasterize_surfels(
             at most this many candidate (pixel, surfel) pairs (at least one row per band);
             with several bands each is recomputed in the backward pass (checkpointing).
             In float32 a band's peak is roughly 250 (CUDA) to 400 (CPU) bytes per pair.
-        backend: ``"auto"`` (default: ``"fused"`` on the CPU, ``"torch"`` on CUDA),
-            ``"fused"`` (:mod:`surfphase.render.fused`, numba kernels, CPU only, 5–10×
-            faster than sparse on the CPU; ``max_pairs_per_chunk`` unused) or ``"torch"``
-            (alias ``"sparse"``; :mod:`surfphase.render.sparse`, pure PyTorch, CPU or CUDA; the second
-            implementation the tests compare against). Both give the same outputs and
-            gradients up to rounding.
+        backend: ``"auto"`` (default: ``"fused"`` on the CPU, ``"torch"`` on CUDA or
+            when ``viewmats`` or ``Ks`` require grad), ``"fused"``
+            (:mod:`surfphase.render.fused`, numba kernels, CPU only, about 3× faster than
+            sparse on 2 cores; no gradients to the cameras; ``max_pairs_per_chunk``
+            unused) or ``"torch"`` (alias ``"sparse"``; :mod:`surfphase.render.sparse`,
+            pure PyTorch, CPU or CUDA; the second implementation the tests compare
+            against). Both give the same outputs and gradients up to rounding.
 
     Returns:
         ``render_colors`` (C, H, W, D): Σ w·colour + (1 − alpha)·background;
@@ -126,11 +130,19 @@ def rasterize_surfels(
     if max_pairs_per_chunk < 1:
         raise ValueError("rasterize_surfels: max_pairs_per_chunk must be ≥ 1")
     if backend == "auto":
-        backend = "fused" if means.device.type == "cpu" else "torch"
+        cpu = means.device.type == "cpu"
+        backend = "fused" if cpu and not (viewmats.requires_grad or Ks.requires_grad) else "torch"
     if backend not in BACKENDS:
         raise ValueError(
             f"rasterize_surfels: unknown backend {backend!r}; known: {', '.join(BACKENDS)}"
         )
+    if backend == "fused":
+        from surfphase.render.fused import rasterize_fused
+
+        return rasterize_fused(
+            means, quats, scales, opacities, colors, viewmats, Ks, int(width), int(height),
+            float(near), float(far), float(low_pass), backgrounds,
+        )  # fmt: skip
     module, func = BACKENDS[backend].split(":")
     backend_fn = getattr(importlib.import_module(module), func)
     out = backend_fn(

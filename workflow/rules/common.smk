@@ -27,6 +27,7 @@ from snakemake.exceptions import WorkflowError
 from snakemake.settings.types import DeploymentMethod
 from snakemake.utils import min_version, validate
 from surfphase.settings import key_hint, unknown_keys
+from surfphase.views_params import REFINE_DEFAULTS
 
 min_version("8.0")
 
@@ -300,7 +301,7 @@ def ingest_cameras(wc):
 
 # Refinement on: novel views → prior → refined views → stage-2 fit, whose surfels are the
 # final result. Off (the "no refinement" ablation): the stage-1 fit is final.
-REFINE = bool(config.get("refine", {}).get("enabled", False))
+REFINE = bool({**REFINE_DEFAULTS, **(config.get("refine") or {})}["enabled"])
 FINAL_FIT = "fit2" if REFINE else "fit"
 
 
@@ -326,9 +327,7 @@ def evaluate_inputs(wc):
 def fit2_settings():
     """Stage-2 settings (config ``fit2:``); the far views default to ``refine.far_views``."""
     settings = dict(config.get("fit2") or {})
-    far = (config.get("refine") or {}).get("far_views")
-    if far is not None:
-        settings.setdefault("far_views", far)
+    settings.setdefault("far_views", REFINE_SETTINGS["far_views"])
     return settings
 
 

@@ -16,13 +16,13 @@ if _unknown_ablations:
         f"config evaluate.ablations: unknown {_unknown_ablations} "
         f"(known: {sorted(ABLATION_SETTINGS)})"
     )
-REGION_SCALE = float((config.get("evaluate") or {}).get("region_scale", 1.5))
+REGION_SCALE = float(config["evaluate"]["region_scale"])  # the schema's default
 # Meshes of stage 1 and the ablations too, for their Chamfer (sessions with ground truth):
 # only with the fused surface, since the hull surface (mesh: surface: hull) is made from
 # the masks alone and would be the same mesh for every fit.
 from surfphase.mesh.params import DEFAULTS as _MESH_DEFAULTS
 
-COMPARE_MESHES = bool((config.get("evaluate") or {}).get("compare_meshes", True)) and (
+COMPARE_MESHES = bool(config["evaluate"]["compare_meshes"]) and (
     {**_MESH_DEFAULTS, **(config.get("mesh") or {})}["surface"] == "fused"
 )
 

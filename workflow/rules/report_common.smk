@@ -3,20 +3,21 @@ videos per session (config ``report``).
 """
 
 
-REPORT = config.get("report") or {}
-MESH_FRAMES = int(REPORT.get("mesh_frames", 4))
+# The schema fills in every key's default (workflow/schemas/config.schema.yaml).
+REPORT = config["report"]
+MESH_FRAMES = int(REPORT["mesh_frames"])
 
 
 def novel_view_names():
     """The orbit views (``orbit01`` …) of the novel-view rules."""
-    return globals().get("ORBIT_VIEWS") or [f"orbit{k:02d}" for k in range(1, 12)]
+    return ORBIT_VIEWS
 
 
 def has_novel_views():
     """Whether the report shows novel-view videos (raw, and refined with refinement on):
     config ``report: videos`` and a workflow that renders them (rule render_views). With
     refinement off this still renders the raw views of the stage-1 fit for the report."""
-    return bool(REPORT.get("videos", True)) and rules.has("render_views")
+    return bool(REPORT["videos"]) and rules.has("render_views")
 
 
 def report_video_inputs(wc):

@@ -40,7 +40,7 @@ rule train_prior:
     params:
         surfphase=SURFPHASE,
         clips=lambda wc: prior_clips(),
-        backend=PRIOR.get("backend", "embedded"),
+        backend=PRIOR["backend"],
         settings=lambda wc: json.dumps(prior_settings()),
         device=config["device"],
         code=code_version("prior", "commands/prior"),
@@ -70,7 +70,7 @@ rule refine:
     params:
         surfphase=SURFPHASE,
         strength=lambda wc: view_strength(wc.view),
-        seed=int(REFINE_SETTINGS.get("seed", config.get("seed", 0))),
+        seed=int(REFINE_SETTINGS["seed"]),
         device=config["device"],
         code=code_version("prior", "views", "views_params", "commands/prior"),
     threads: config["threads"]

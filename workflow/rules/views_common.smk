@@ -1,14 +1,14 @@
 """Settings and helpers of the novel-view, prior and refinement rules (views.smk).
 
 Config blocks ``prior`` (clips, backend, per-backend parameters, Wan weights folder) and
-``refine`` (orbit views, SDEdit strengths per view, seed); every key has a default here,
-so a campaign without them still gets the method's values.
+``refine`` (orbit views, SDEdit strengths per view, seed), whose defaults are
+``surfphase.views_params.REFINE_DEFAULTS``.
 """
 import glob as _glob
 
-PRIOR = config.get("prior") or {}
-REFINE_SETTINGS = config.get("refine") or {}
-N_VIEWS = int(REFINE_SETTINGS.get("n_views", 11))
+PRIOR = config["prior"]  # the schema fills in its defaults
+REFINE_SETTINGS = {**REFINE_DEFAULTS, **(config.get("refine") or {})}
+N_VIEWS = int(REFINE_SETTINGS["n_views"])
 ORBIT_VIEWS = [f"orbit{k:02d}" for k in range(1, N_VIEWS + 1)]
 
 
@@ -25,17 +25,17 @@ def views_settings():
     """``surfphase render-views`` parameters from the ``refine`` block."""
     return {
         "n_views": N_VIEWS,
-        "step_deg": float(REFINE_SETTINGS.get("step_deg", 30.0)),
-        "reference": REFINE_SETTINGS.get("reference_camera"),
+        "step_deg": float(REFINE_SETTINGS["step_deg"]),
+        "reference": REFINE_SETTINGS["reference_camera"],
     }
 
 
 def view_strength(view):
     """SDEdit strength of an orbit view: ``strength_far`` for the ``far_views`` numbers
     (those far from both input cameras), else ``strength_near``."""
-    far = [int(k) for k in REFINE_SETTINGS.get("far_views", [4, 5, 6, 7, 8])]
+    far = [int(k) for k in REFINE_SETTINGS["far_views"]]
     key = "strength_far" if int(view[len("orbit") :]) in far else "strength_near"
-    return float(REFINE_SETTINGS.get(key, 0.35 if key == "strength_far" else 0.2))
+    return float(REFINE_SETTINGS[key])
 
 
 def prior_clips():
@@ -59,10 +59,10 @@ def prior_clip_inputs(wc):
 
 def prior_settings():
     """Backend parameters: the backend's block, plus the local weights folder for Wan."""
-    backend = PRIOR.get("backend", "embedded")
+    backend = PRIOR["backend"]
     settings = dict(PRIOR.get(backend) or {})
     if backend == "wan":
         settings["weights"] = PRIOR.get("wan_weights")
-    settings.setdefault("seed", int(config.get("seed", 0)))
+    settings.setdefault("seed", int(config["seed"]))
     return settings
 
