@@ -506,7 +506,10 @@ def _notes(smoothing, method_smoothing, set_values: Sequence[str], cores: int) -
     (window, order), (m_window, m_order) = smoothing, method_smoothing
     return (
         f"Gate: reported and true bubbles match when their centroids are within "
-        f"{GATE_R_EQ:g} r_eq of the true bubble (Hungarian per frame). Baseline smoothed: "
+        f"{GATE_R_EQ:g} r_eq of the true bubble (Hungarian per frame). Baseline: a "
+        f"bubble-frame whose triangulated centroid reprojects more than {bl.MAX_REPROJ_PX:g} "
+        "px from its native mask centroid in a view is left out (off the epipolar "
+        "geometry: a fragment, a merge the views see differently). Baseline smoothed: "
         f"Savitzky–Golay (deriv=1) over {window * 1e3:g} ms, order {order} (best of the "
         f"grid below on these sessions). Method track-smoothed: `fit: track_window_s: "
         f"{m_window:g}`, `track_order: {m_order}` (best of the same grid for the method), "
