@@ -229,7 +229,7 @@ def bubble_hull_volume(
     Returns ``(sdf (nx, ny, nz) float32 m, origin (3,) m, voxel m)``, or None when no
     voxel is seen as ``b`` by both views.
     """
-    from surfphase.mesh.stage import silhouette_distance
+    from surfphase.mesh.surfaces import silhouette_distance
 
     own_labels = [np.where(np.asarray(lb) == b, b, -1) for lb in labels[:2]]
     rays = [c - cam.center for cam, c in zip(cameras[:2], (centre, centre), strict=True)]

@@ -1,0 +1,214 @@
+"""What a frame's mesh is made of (config ``mesh: surface``): the surfels' depth maps
+fused into a TSDF and carved by the masks' hulls (:func:`mesh_frame`, ``fused``), or
+each bubble's elliptic hull on its own grid (:func:`hull_mesh_frame`, ``hull``), and the
+vertices' velocities. Pure functions of one frame; :mod:`surfphase.mesh.stage` runs them
+over a session.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from surfphase.cameras import Camera, orbit_cameras
+from surfphase.mesh.cleanup import clean_mesh
+from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
+from surfphase.mesh.hull import bubble_hull_volume, bubble_spheres, elliptic_hull_distance
+
+
+def vertex_velocities(
+    verts: np.ndarray, surfel_means: np.ndarray, surfel_velocity: np.ndarray
+) -> np.ndarray:
+    """(V, 3) velocity (m/s) of each vertex: that of the nearest surfel ((N, 3) metres,
+    (N, 3) m/s)."""
+    if len(verts) == 0:
+        return np.zeros((0, 3))
+    _, idx = cKDTree(surfel_means).query(verts)
+    return np.asarray(surfel_velocity, np.float64)[idx]
+
+
+def view_cameras(inputs: list[Camera], center: np.ndarray, p: dict) -> list[Camera]:
+    """Input cameras plus orbit views about ``center``, all scaled by ``render_scale``."""
+    cams = [c.undistorted() for c in inputs]
+    if int(p["n_orbit"]) > 0:
+        cams += orbit_cameras(cams[0], center, int(p["n_orbit"]), float(p["orbit_step_deg"]))
+    return [c.scaled(float(p["render_scale"])) for c in cams]
+
+
+def mesh_frame(
+    means: np.ndarray,
+    quats: np.ndarray,
+    log_scales: np.ndarray,
+    opacity: np.ndarray,
+    inputs: list[Camera],
+    p: dict,
+    device: str = "cpu",
+    labels: list[np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh of one frame's surfels ((N, 3) m, (N, 4), (N, 2) ln m, (N,)) seen by the
+    input cameras; returns (V, 3) vertices (metres) and (F, 3) faces. ``labels``: per
+    input camera, the frame's (H, W) int masks (−1 background), for ``carve_px`` and
+    ``ellipse_hull``."""
+    extent = float(np.ptp(means, axis=0).max())
+    voxel = float(p["voxel_m"]) if p["voxel_m"] else extent / float(p["voxels"])
+    trunc = float(p["trunc_voxels"]) * voxel
+    cams = view_cameras(inputs, means.mean(0), p)
+    keep = opacity >= float(p["opacity_min"])
+    if keep.sum() < 4:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    depths = render_depths(
+        means[keep],
+        quats[keep],
+        log_scales[keep] + np.log(float(p["scale_factor"])),
+        np.ones(int(keep.sum())) if p["solid"] else opacity[keep],
+        cams,
+        device,
+        p["alpha_min"],
+        p["silhouette_alpha"],
+    )
+    origin, shape = voxel_grid(means, voxel, float(p["margin_voxels"]) * voxel)
+    sdf = fuse_depths(depths, cams, origin, shape, voxel, trunc)
+    if p["floor_y"] is not None:
+        sdf = cut_below(sdf, origin, voxel, float(p["floor_y"]), trunc)
+    if labels is not None and p["carve_px"] is not None:
+        views = [c.undistorted() for c in inputs]
+        hull = silhouette_distance(
+            origin, sdf.shape, voxel, views, [np.asarray(m) >= 0 for m in labels],
+            float(p["carve_px"]),
+        )  # fmt: skip
+        if p["ellipse_hull"] and len(views) >= 2:
+            hull = np.maximum(hull, elliptic_hull_distance(origin, sdf.shape, voxel, views, labels))
+        sdf = np.maximum(sdf, np.clip(hull, -trunc, trunc).astype(sdf.dtype))
+    verts, faces = marching_cubes_mesh(sdf, origin, voxel)
+    return clean_mesh(
+        verts,
+        faces,
+        float(p["min_component_m"]),
+        int(p["smooth_steps"]),
+        int(p["max_hole_edges"]),
+    )
+
+
+def hull_mesh_frame(
+    inputs: list[Camera],
+    labels: list[np.ndarray],
+    p: dict,
+    hints: dict[int, tuple[np.ndarray, float]] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mesh of one frame's bubbles as their elliptic hulls (``mesh: surface: hull``).
+
+    Every id that both input views' (H, W) labels show is meshed on its own grid
+    (:func:`surfphase.mesh.hull.bubble_hull_volume`, ``hull_voxels_per_radius``), cut at
+    the plate (``floor_y``) and cleaned. Where the silhouettes' centroids triangulate to
+    no point both views see (the nucleation region, id 0, can hold different pieces in
+    each view), ``hints`` (id → (3,) centre m, radius m; e.g. from the fit's surfels)
+    place the search instead. Returns (V, 3) vertices (m), (F, 3) faces and (V,) each
+    vertex's bubble id.
+    """
+    views = [c.undistorted() for c in inputs]
+    verts, faces, ids, n = [], [], [], 0
+    for b, sphere in bubble_spheres(views, labels).items():
+        vol = None
+        for centre, radius in [sphere] + ([hints[b]] if hints and b in hints else []):
+            vol = bubble_hull_volume(
+                views, labels, b, centre, radius,
+                float(p["hull_voxels_per_radius"]), float(p["trunc_voxels"]),
+            )  # fmt: skip
+            if vol is not None:
+                break
+        if vol is None:
+            continue
+        sdf, origin, voxel = vol
+        if p["floor_y"] is not None:
+            trunc = float(p["trunc_voxels"]) * voxel
+            sdf = cut_below(sdf, origin, voxel, float(p["floor_y"]), trunc)
+        v, f = marching_cubes_mesh(sdf, origin, voxel)
+        v, f = clean_mesh(
+            v, f, float(p["min_component_m"]), int(p["smooth_steps"]), int(p["max_hole_edges"])
+        )
+        if len(f):
+            verts.append(v)
+            faces.append(f + n)
+            ids.append(np.full(len(v), b, np.int64))
+            n += len(v)
+    if not verts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    return np.concatenate(verts), np.concatenate(faces), np.concatenate(ids)
+
+
+def surfel_spheres(means: np.ndarray, bubble: np.ndarray) -> dict[int, tuple[np.ndarray, float]]:
+    """Per bubble id with surfels ((N, 3) m, (N,) ids): the (3,) centre of their box
+    and half its diagonal (metres)."""
+    out = {}
+    for b in np.unique(bubble):
+        m = np.asarray(means)[np.asarray(bubble) == b]
+        lo, hi = m.min(axis=0), m.max(axis=0)
+        out[int(b)] = (0.5 * (lo + hi), max(0.5 * float(np.linalg.norm(hi - lo)), 1e-5))
+    return out
+
+
+def bubble_vertex_velocities(
+    verts: np.ndarray,
+    vertex_bubble: np.ndarray,
+    surfel_means: np.ndarray,
+    surfel_bubble: np.ndarray,
+    surfel_velocity: np.ndarray,
+) -> np.ndarray:
+    """(V, 3) velocity (m/s) of each vertex: that of the nearest surfel of its own bubble
+    ((V,) ids; surfels (N, 3) m, (N,) ids, (N, 3) m/s); NaN for a bubble the fit gave
+    no surfels (its speed is unknown, not zero)."""
+    out = np.full((len(verts), 3), np.nan)
+    for b in np.unique(vertex_bubble):
+        mine = np.flatnonzero(np.asarray(surfel_bubble) == b)
+        if mine.size:
+            sel = np.flatnonzero(vertex_bubble == b)
+            out[sel] = vertex_velocities(verts[sel], surfel_means[mine], surfel_velocity[mine])
+    return out
+
+
+def cut_below(
+    sdf: np.ndarray, origin: np.ndarray, voxel: float, floor_y: float, trunc: float
+) -> np.ndarray:
+    """(nx, ny, nz) signed distance volume (metres, positive outside, voxel [0, 0, 0]
+    centred at ``origin``) intersected with the half-space y ≥ ``floor_y``: the
+    maximum of the two signed distances, the half-space's truncated at ``trunc``."""
+    y = np.asarray(origin, np.float64)[1] + voxel * np.arange(sdf.shape[1])
+    below = np.clip(floor_y - y, -trunc, trunc).astype(sdf.dtype)
+    return np.maximum(sdf, below[None, :, None])
+
+
+def silhouette_distance(
+    origin: np.ndarray,
+    shape: tuple[int, int, int],
+    voxel: float,
+    cameras: list[Camera],
+    silhouettes: list[np.ndarray],
+    grow_px: float = 0.0,
+) -> np.ndarray:
+    """Approximate signed distance (metres, positive outside) of every voxel centre of
+    a grid (``shape``, voxel [0, 0, 0] centred at ``origin``, edge ``voxel`` m) to the
+    visual hull of ``silhouettes`` ((H, W) bool per camera, grown by ``grow_px``).
+
+    Per view: the image's signed distance to its silhouette (pixels, Euclidean distance
+    transform, positive outside) at the pixel the voxel projects to, times depth / focal
+    length; the hull's is the largest over the views. A voxel outside a view's image or
+    behind it is not constrained by that view.
+    """
+    from scipy import ndimage as ndi
+
+    axes = [np.asarray(origin, np.float64)[i] + voxel * np.arange(shape[i]) for i in range(3)]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    out = np.full(len(X), -np.inf)
+    for cam, sil in zip(cameras, silhouettes, strict=True):
+        sil = np.asarray(sil, bool)
+        signed = ndi.distance_transform_edt(~sil) - ndi.distance_transform_edt(sil) - grow_px
+        z = cam.world_to_camera(X)[:, 2]
+        uv = cam.project(X, distort=False)
+        h, w = sil.shape
+        col, row = np.round(uv[:, 0]).astype(np.int64), np.round(uv[:, 1]).astype(np.int64)
+        seen = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+        d = np.full(len(X), -np.inf)
+        d[seen] = signed[row[seen], col[seen]] * z[seen] / f
+        out = np.maximum(out, d)
+    return out.reshape(shape)
