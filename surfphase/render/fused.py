@@ -41,6 +41,14 @@ OpenMP runtime beside PyTorch's), with as many threads as ``torch.get_num_thread
 (``cache=True``; the first render in a fresh cache compiles for ~25 s, later processes
 load them in under a second). :func:`depth_normals_fused` is the CPU form of
 :func:`surfphase.render.rasterize.depth_normals` used by the sparse backend.
+
+Why the module and its pair kernels (``_forward``, ``_backward``, ``_project_backward``)
+are long: each kernel is one loop nest over a band's rows and their surfels, with the
+per-pair state (transmittance, the pixel's running sums, the entry's features) in
+local variables; split into functions, numba would pass that state through memory on
+every pair, which costs the per-pair time the backend exists to save. The forward and
+the backward of one quantity are kept side by side in this one module so that they are
+read and changed together.
 """
 
 from __future__ import annotations

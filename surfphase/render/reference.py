@@ -5,6 +5,10 @@ the sparse backend: each ray is intersected with each surfel's plane in world sp
 (ray–plane intersection), not through the homography the fast path uses; it keeps no
 bounding boxes; and it blends surfel after surfel, in depth order, over the whole image,
 with the same culling, 1/255 skip, 0.99 cap and 1e-4 termination rules.
+
+:func:`rasterize_surfels_reference` is one function of about 100 lines on purpose: the
+reference the fast backends are tested against is read top to bottom as one loop, with
+every rule next to the others.
 """
 
 from __future__ import annotations
