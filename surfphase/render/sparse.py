@@ -11,10 +11,10 @@ sums (log-transmittance, float64) and ``index_add`` scatters; the exact per-pair
 rows holding at most ``max_pairs_per_chunk`` candidate pairs; with several bands each
 is checkpointed (recomputed in backward), so memory stays bounded in backward too.
 
-``_render_band`` (about 100 lines of code) is kept whole: it builds one band's
-differentiable pass (pairs, weights, compositing, accumulation), whose intermediate
-tensors are freed together when the band's outputs are summed, and whose order of
-operations the bit-level comparisons with the fused backend rest on.
+``_render_band`` (about 100 lines of code) is kept whole: it is one band's
+differentiable pass (pairs, weights, compositing, accumulation), the unit that is
+checkpointed and recomputed in backward, so its intermediate tensors live and are freed
+together.
 """
 
 from __future__ import annotations
