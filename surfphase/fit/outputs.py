@@ -213,19 +213,6 @@ def bubble_table(
     return table
 
 
-def read_anchors(path: Path, session: str) -> pd.DataFrame | None:
-    """The mask stage's ``anchors.csv`` (``frame, bubble, x, y, z, ...``), or None when
-    the masks have none (written before it existed)."""
-    path = Path(path)
-    if not path.is_file():
-        return None
-    tab = pd.read_csv(path)
-    missing = {"frame", "bubble", "x", "y", "z"} - set(tab.columns)
-    if missing:
-        raise ValueError(f"{path}: session {session}: anchors lack columns {sorted(missing)}")
-    return tab
-
-
 def nucleation_frames(label_stacks: Sequence[np.ndarray], frames: np.ndarray) -> set[int]:
     """Session frame indices (``frames``, one per stack position) where every view's
     (T, H, W) label stack shows the nucleation region (id 0): as for a bubble, both
