@@ -36,7 +36,6 @@ import json
 import math
 import os
 import re
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +45,7 @@ import torch
 
 from surfphase.cameras import Camera
 from surfphase.device import resolve_device
+from surfphase.fit.backgrounds import background_median, fill_nearest
 from surfphase.fit.loop import FitInputs, run_frames
 from surfphase.fit.model import SurfelModel
 from surfphase.fit.outputs import load_surfels
@@ -117,24 +117,18 @@ def refined_background(
         (H, W) float32. A pixel covered by the stage-1 bubbles in every frame takes the
         value of the nearest pixel that is background at some frame.
     """
-    from scipy import ndimage
-
     frames = np.asarray(frames, dtype=np.float32)
     alpha = np.asarray(alpha, dtype=np.float32)
     if frames.shape != alpha.shape or frames.ndim != 3:
         raise ValueError(f"refined_background: frames {frames.shape} and alpha {alpha.shape}")
-    x = np.where(alpha <= alpha_max, frames, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: filled below
-        med = np.nanmedian(x, axis=0)
+    med = background_median(np.where(alpha <= alpha_max, frames, np.nan))
     missing = np.isnan(med)
     if missing.all():
         if fallback is None:
             return np.median(frames, axis=0).astype(np.float32)
         return np.broadcast_to(np.asarray(fallback, np.float32), med.shape).copy()
     if missing.any():
-        _, (ri, ci) = ndimage.distance_transform_edt(missing, return_indices=True)
-        med = med[ri, ci]
+        med = fill_nearest(med, missing)
     return med.astype(np.float32)
 
 
