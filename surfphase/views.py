@@ -118,25 +118,15 @@ def render_frame(
     Returns:
         grey (C, H, W) float32 in [0, 1] (colour channels averaged) and alpha (C, H, W).
     """
-    from surfphase.fit.outputs import frame_colors
-    from surfphase.render import camera_tensors, over_background, rasterize_surfels
+    from surfphase.fit.outputs import rasterize_frame
+    from surfphase.render import over_background
 
-    dev = torch.device(device)
     alive = np.asarray(surfels["alive"][t], bool)
     H, W = cameras[0].height, cameras[0].width
     if not alive.any():
         n = len(cameras)
         return np.broadcast_to(background, (n, H, W)).copy(), np.zeros((n, H, W), np.float32)
-
-    def f(k: str) -> torch.Tensor:
-        return torch.as_tensor(np.asarray(surfels[k][t])[alive], device=dev)
-
-    viewmats, Ks = camera_tensors(list(cameras), dev, torch.float32)
-    with torch.no_grad():
-        rgb, alpha, _ = rasterize_surfels(
-            f("means"), f("quats"), torch.exp(f("log_scales")), f("opacity"),
-            frame_colors(surfels, t, viewmats, dev).clamp(0, 1), viewmats, Ks, W, H,
-        )  # fmt: skip
+    rgb, alpha = rasterize_frame(surfels, t, cameras, torch.device(device), clamp_colors=True)
     grey = rgb.mean(-1).cpu().numpy()
     a = alpha[..., 0].cpu().numpy()
     image = np.clip(over_background(grey, a, background), 0, 1)

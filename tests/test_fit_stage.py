@@ -76,31 +76,6 @@ def test_bad_inputs_name_the_file(tmp_path, toy):
     assert not Path(tmp_path / "o" / "surfels.npz").exists()
 
 
-def test_read_merges_from_the_mask_events(tmp_path):
-    from surfphase.fit.session import read_merges
-
-    p = tmp_path / "events.csv"
-    p.write_text(
-        "frame,camera,event,parents,children\n"
-        "14,cam0,merge,1+2,5\n"
-        "3,cam1,split,3,1+4\n"
-        "14,cam1,merge,2+4,5\n"
-        "19,cam1,merge,3+5,6\n"
-    )
-    assert read_merges(p) == {14: {5: {1, 2, 4}}, 19: {6: {3, 5}}}
-    # A merge row without parents (older mask stages wrote them; seen on a synthetic
-    # session with a split and two merges) is skipped, not a crash on "nan".
-    p.write_text(
-        "frame,camera,event,parents,children\n"
-        "9,cam0,merge,,5\n12,cam0,merge,6+5,7\n18,cam1,detach,0,8\n"
-    )
-    assert read_merges(p) == {12: {7: {5, 6}}}
-    assert read_merges(tmp_path / "missing.csv") == {}
-    p.write_text("frame,camera\n1,cam0\n")
-    with pytest.raises(ValueError, match="events.csv"):
-        read_merges(p)
-
-
 def test_without_the_floor_surfels_go_below_the_plate(toy, tmp_path):
     """The check above is not vacuous: with ``floor_y: None`` the same fit leaves surfel
     centres under y = 0 (the nucleation bubble's visual hull reaches below it)."""

@@ -59,7 +59,7 @@ def write_views(root, names_az):
     views.mkdir(parents=True)
     refine.mkdir(parents=True)
     cams = [orbit_view(n, az) for n, az in names_az]
-    save_cameras(views / "cameras.json", cams)
+    save_cameras(views / "cameras.json", cams, session="toy", fps=FPS, frame=list(range(FRAMES)))
     for cam in cams:
         imgs, alphas = [], []
         for f in range(FRAMES):

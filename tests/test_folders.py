@@ -14,7 +14,7 @@ from skimage.util import img_as_float32
 from surfphase.cameras import look_at
 from surfphase.folders.frames import to_uint16, unit_float, unit_grey
 from surfphase.folders.ingest import read_ingest, write_ingest
-from surfphase.folders.masks import read_masks, write_masks
+from surfphase.folders.masks import read_anchors, read_masks, read_merges, write_masks
 from surfphase.folders.views import read_refined, read_views, write_refined, write_views
 
 T, H, W = 4, 10, 12
@@ -213,7 +213,14 @@ def test_views_round_trip_and_errors(tmp_path):
     assert got.stored("cam1").dtype == np.uint16
     np.testing.assert_allclose(got.frames("cam1"), frames[1], atol=0.5 / 65535 + 1e-7)
     np.testing.assert_array_equal(np.load(folder / "background.npy"), bg)
-    assert np.load(folder / "cam0_alpha.npy").dtype == np.float16
+    np.testing.assert_array_equal(got.background(), bg)
+    assert got.alpha("cam0").dtype == np.float16
+    np.testing.assert_array_equal(got.alpha("cam0"), alphas[0].astype(np.float16))
+    with pytest.raises(FileNotFoundError, match=r"orbit09_alpha\.npy: no alpha of view orbit09 "
+                       r"\(session s07\)"):  # fmt: skip
+        got.alpha("orbit09")
+    (folder / "background.npy").unlink()
+    assert got.background() is None
     with pytest.raises(FileNotFoundError, match=r"orbit09\.npy: no such view in"):
         got.frames("orbit09")
     np.save(folder / "cam1.npy", frames[1])
@@ -235,3 +242,39 @@ def test_views_round_trip_and_errors(tmp_path):
     np.testing.assert_allclose(read_refined(refine, "orbit01"), frames[0], atol=0.5 / 65535 + 1e-7)
     assert json.loads((refine / "orbit01.json").read_text()) == {"strength": 0.3}
     assert (refine / "orbit01.mp4").stat().st_size > 0
+
+
+def test_merges_from_the_mask_events(tmp_path):
+    p = tmp_path / "events.csv"
+    p.write_text(
+        "frame,camera,event,parents,children\n"
+        "14,cam0,merge,1+2,5\n"
+        "3,cam1,split,3,1+4\n"
+        "14,cam1,merge,2+4,5\n"
+        "19,cam1,merge,3+5,6\n"
+    )
+    assert read_merges(tmp_path, "s07") == {14: {5: {1, 2, 4}}, 19: {6: {3, 5}}}
+    # A merge row without parents (older mask stages wrote them; seen on a synthetic
+    # session with a split and two merges) is skipped, not a crash on "nan".
+    p.write_text(
+        "frame,camera,event,parents,children\n"
+        "9,cam0,merge,,5\n12,cam0,merge,6+5,7\n18,cam1,detach,0,8\n"
+    )
+    assert read_merges(tmp_path, "s07") == {12: {7: {5, 6}}}
+    assert read_merges(tmp_path / "missing", "s07") == {}
+    p.write_text("frame,camera\n1,cam0\n")
+    with pytest.raises(ValueError, match=r"events\.csv: session s07: not a merge/split event"):
+        read_merges(tmp_path, "s07")
+
+
+def test_anchors_table(tmp_path):
+    assert read_anchors(tmp_path, "s07") is None  # masks written before anchors existed
+    (tmp_path / "anchors.csv").write_text("frame,bubble,x,y,z,n_views\n12,3,0.001,0.002,0.5,2\n")
+    tab = read_anchors(tmp_path, "s07")
+    assert tab.to_dict("records") == [
+        {"frame": 12, "bubble": 3, "x": 0.001, "y": 0.002, "z": 0.5, "n_views": 2}
+    ]
+    (tmp_path / "anchors.csv").write_text("frame,bubble,x\n12,3,0.001\n")
+    with pytest.raises(ValueError, match=r"anchors\.csv: session s07: anchors lack columns "
+                       r"\['y', 'z'\]"):  # fmt: skip
+        read_anchors(tmp_path, "s07")

@@ -86,16 +86,16 @@ def method_track_table(
     the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
     (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
     the table is a function of these)."""
-    from surfphase.fit.outputs import anchored_table, bubble_table, nucleation_frames, read_anchors
+    from surfphase.fit.outputs import anchored_table, bubble_table, nucleation_frames
     from surfphase.folders.fit import read_fit_surfels
     from surfphase.folders.ingest import read_ingest
-    from surfphase.folders.masks import read_masks
+    from surfphase.folders.masks import read_anchors, read_masks
 
     arrays = read_fit_surfels(fit_dir)
     # The workflow's layout: results/<session>/{ingest,masks,fit}.
     ingest = read_ingest(Path(fit_dir).parent / "ingest")
     masks = Path(fit_dir).parent / "masks"
-    anchors = read_anchors(masks / "anchors.csv", ingest.session)
+    anchors = read_anchors(masks, ingest.session)
     if anchors is None:
         return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order)
     labels = list(read_masks(masks, ingest.input_cameras(), ingest.session).labels.values())

@@ -15,27 +15,38 @@ import numpy as np
 from surfphase.fit.session import SessionData
 
 
+def background_median(x: np.ndarray) -> np.ndarray:
+    """Per-pixel median over time of (K, H, W[, D]) frames whose non-background entries
+    are NaN: (H, W[, D]), NaN where a pixel is never background."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: the caller fills
+        return np.nanmedian(x, axis=0)
+
+
+def fill_nearest(image: np.ndarray, missing: np.ndarray) -> np.ndarray:
+    """``image`` (H, W[, D]) with each ``missing`` pixel ((H, W) bool, not all of them)
+    taking the value of the nearest pixel that is not (Euclidean distance)."""
+    from scipy import ndimage
+
+    _, (ri, ci) = ndimage.distance_transform_edt(missing, return_indices=True)
+    return image[ri, ci]
+
+
 def estimate_backgrounds(data: SessionData, n_frames: int, max_frames: int = 64) -> np.ndarray:
     """Per-view background images (C, H, W, D) in [0, 1]: the per-pixel median over time of
     the pixels the masks call background (backlight, plate, static dirt); pixels that are
     never background take the nearest background pixel's value."""
-    from scipy import ndimage
-
     idx = np.unique(np.linspace(0, n_frames - 1, min(n_frames, max_frames)).round().astype(int))
     imgs = np.stack([data.images(t) for t in idx])  # (K, C, H, W, D)
     labs = np.stack([np.stack(data.labels(t)) for t in idx])  # (K, C, H, W)
     out = np.empty(imgs.shape[1:], dtype=np.float32)
     for c in range(imgs.shape[1]):
-        x = np.where((labs[:, c] < 0)[..., None], imgs[:, c], np.nan)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: filled below
-            med = np.nanmedian(x, axis=0)
+        med = background_median(np.where((labs[:, c] < 0)[..., None], imgs[:, c], np.nan))
         missing = np.isnan(med[..., 0])
         if missing.all():
             med = np.broadcast_to(np.median(imgs[:, c], axis=(0, 1, 2)), med.shape).copy()
         elif missing.any():
-            _, (ri, ci) = ndimage.distance_transform_edt(missing, return_indices=True)
-            med = med[ri, ci]
+            med = fill_nearest(med, missing)
         out[c] = med
     return out
 

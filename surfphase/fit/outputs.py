@@ -106,6 +106,34 @@ def frame_colors(
     return view_colors(f("colors"), f("means"), f("quats"), knots, viewmats.to(knots))
 
 
+def rasterize_frame(
+    surfels: dict[str, np.ndarray],
+    frame: int,
+    cameras: Sequence[Camera],
+    device: torch.device,
+    clamp_colors: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rasterize frame position ``frame``'s live surfels of a ``surfels.npz`` into
+    ``cameras`` (one size), without gradients: ``(colors (C, H, W, D) premultiplied,
+    alpha (C, H, W, 1))`` on ``device``, nothing composited yet. ``clamp_colors``: the
+    surfel colours clamped to [0, 1] first (the orbit views)."""
+    from surfphase.render import camera_tensors, rasterize_surfels
+
+    a = np.asarray(surfels["alive"][frame], bool)
+    f = lambda k: torch.as_tensor(np.asarray(surfels[k][frame])[a], device=device)  # noqa: E731
+    viewmats, Ks = camera_tensors(list(cameras), device, torch.float32)
+    W, H = cameras[0].width, cameras[0].height
+    with torch.no_grad():
+        colors = frame_colors(surfels, frame, viewmats, device)
+        if clamp_colors:
+            colors = colors.clamp(0, 1)
+        rgb, alpha, _ = rasterize_surfels(
+            f("means"), f("quats"), torch.exp(f("log_scales")), f("opacity"), colors,
+            viewmats, Ks, W, H,
+        )  # fmt: skip
+    return rgb, alpha
+
+
 def record_ids(record: dict) -> np.ndarray:
     """The persistent surfel ids (n,) int64 of a frame record's rows."""
     if "ids" in record:
@@ -211,19 +239,6 @@ def bubble_table(
         seg = track_segments(table, [pos[int(f)] for f in table["frame"]], bub, w)
         smooth_tracks(table, seg, track_window_s, track_order)
     return table
-
-
-def read_anchors(path: Path, session: str) -> pd.DataFrame | None:
-    """The mask stage's ``anchors.csv`` (``frame, bubble, x, y, z, ...``), or None when
-    the masks have none (written before it existed)."""
-    path = Path(path)
-    if not path.is_file():
-        return None
-    tab = pd.read_csv(path)
-    missing = {"frame", "bubble", "x", "y", "z"} - set(tab.columns)
-    if missing:
-        raise ValueError(f"{path}: session {session}: anchors lack columns {sorted(missing)}")
-    return tab
 
 
 def nucleation_frames(label_stacks: Sequence[np.ndarray], frames: np.ndarray) -> set[int]:
@@ -366,27 +381,12 @@ def render_surfels(
     """Render frame index ``frame`` (0-based position in the file) of ``surfels`` into
     ``cameras`` over ``backgrounds`` ((C, H, W, D) images; default the constant
     ``surfels["background"]``); returns (C, H, W, D) float32 in [0, 1]."""
-    from surfphase.render import camera_tensors, rasterize_surfels
+    from surfphase.render import over_background
 
     dev = torch.device(device)
-    a = surfels["alive"][frame]
-    f = lambda k: torch.as_tensor(surfels[k][frame][a], device=dev)  # noqa: E731
-    viewmats, Ks = camera_tensors(list(cameras), dev, torch.float32)
-    W, H = cameras[0].width, cameras[0].height
-    with torch.no_grad():
-        rgb, alpha, _ = rasterize_surfels(
-            f("means"),
-            f("quats"),
-            torch.exp(f("log_scales")),
-            f("opacity"),
-            frame_colors(surfels, frame, viewmats, dev),
-            viewmats,
-            Ks,
-            W,
-            H,
-        )
-        bg = surfels["background"] if backgrounds is None else backgrounds
-        rgb = rgb + (1 - alpha) * torch.as_tensor(np.asarray(bg, np.float32), device=dev)
+    rgb, alpha = rasterize_frame(surfels, frame, cameras, dev)
+    bg = surfels["background"] if backgrounds is None else backgrounds
+    rgb = over_background(rgb, alpha, torch.as_tensor(np.asarray(bg, np.float32), device=dev))
     return rgb.clamp(0, 1).cpu().numpy()
 
 

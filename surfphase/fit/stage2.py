@@ -4,7 +4,8 @@ the stage-1 surfels of the first frame, with the refined orbit views as extra su
 Inputs: the session's ingest and mask folders (as stage 1), the stage-1 fit
 (``surfels.npz``, :mod:`surfphase.fit.outputs`), the rendered orbit views
 (``views/cameras.json`` and ``views/<v>_alpha.npy``, the stage-1 alpha) and the refined
-orbit videos (``refine/<v>.npy``, (T, H, W) grey frames, uint16 or float in [0, 1]).
+orbit videos (``refine/<v>.npy``, (T, H, W) uint16 grey frames, value·65535), read through
+:mod:`surfphase.folders.views`.
 
 Per frame the loss is ``λ_app Σ_c w_c (L1 + D-SSIM)_c + λ_geo (geometry)``: input views
 ``w = weight_inputs`` (1.0), refined views ``weight_near`` (0.5) for orbit views 1–3 and
@@ -35,7 +36,6 @@ import json
 import math
 import os
 import re
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -43,8 +43,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from surfphase.cameras import Camera, load_cameras
+from surfphase.cameras import Camera
 from surfphase.device import resolve_device
+from surfphase.fit.backgrounds import background_median, fill_nearest
 from surfphase.fit.loop import FitInputs, run_frames
 from surfphase.fit.model import SurfelModel
 from surfphase.fit.outputs import load_surfels
@@ -53,6 +54,7 @@ from surfphase.fit.params import FIT_OVERRIDES  # stage-1 settings stage 2 chang
 from surfphase.fit.params import STAGE2_DEFAULTS as DEFAULTS  # config fit2:
 from surfphase.fit.session import SessionData
 from surfphase.fit.stage import checkpoint_folder, merge_params
+from surfphase.folders.views import read_refined, read_views
 from surfphase.io import atomic_write_json
 from surfphase.render.shading import monotone_raw
 from surfphase.settings import check_keys
@@ -98,16 +100,6 @@ def view_weights(names: Sequence[str], s2: Mapping) -> np.ndarray:
     )
 
 
-def to_unit(frames: np.ndarray) -> np.ndarray:
-    """Grey frames as float32 in [0, 1] (uint16 / 65535, uint8 / 255, floats clipped)."""
-    a = np.asarray(frames)
-    if a.dtype == np.uint16:
-        return a.astype(np.float32) / 65535.0
-    if a.dtype == np.uint8:
-        return a.astype(np.float32) / 255.0
-    return np.clip(a.astype(np.float32), 0.0, 1.0)
-
-
 def refined_background(
     frames: np.ndarray, alpha: np.ndarray, alpha_max: float = 0.02, fallback=None
 ) -> np.ndarray:
@@ -125,24 +117,18 @@ def refined_background(
         (H, W) float32. A pixel covered by the stage-1 bubbles in every frame takes the
         value of the nearest pixel that is background at some frame.
     """
-    from scipy import ndimage
-
     frames = np.asarray(frames, dtype=np.float32)
     alpha = np.asarray(alpha, dtype=np.float32)
     if frames.shape != alpha.shape or frames.ndim != 3:
         raise ValueError(f"refined_background: frames {frames.shape} and alpha {alpha.shape}")
-    x = np.where(alpha <= alpha_max, frames, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels: filled below
-        med = np.nanmedian(x, axis=0)
+    med = background_median(np.where(alpha <= alpha_max, frames, np.nan))
     missing = np.isnan(med)
     if missing.all():
         if fallback is None:
             return np.median(frames, axis=0).astype(np.float32)
         return np.broadcast_to(np.asarray(fallback, np.float32), med.shape).copy()
     if missing.any():
-        _, (ri, ci) = ndimage.distance_transform_edt(missing, return_indices=True)
-        med = med[ri, ci]
+        med = fill_nearest(med, missing)
     return med.astype(np.float32)
 
 
@@ -210,48 +196,40 @@ def load_extra_views(
     """Read the refined views named in ``views_dir/cameras.json`` (weight > 0 only).
 
     Args:
-        views_dir: ``cameras.json``, ``<v>_alpha.npy`` (T, H, W) and optionally
+        views_dir: the views folder (:func:`surfphase.folders.views.read_views`):
+            ``cameras.json``, ``<v>_alpha.npy`` (T, H, W) and optionally
             ``background.npy`` (H, W) of the rendered orbit views.
-        refine_dir: ``<v>.npy`` (T, H, W) refined frames.
+        refine_dir: the refine folder: ``<v>.npy`` (T, H, W) uint16 refined frames
+            (:func:`surfphase.folders.views.read_refined`).
         s2: stage-2 settings (:data:`DEFAULTS`).
         size: (H, W) of the input views; every orbit view must have it.
         channels: D of the input images (grey refined frames are repeated).
         seed: seed of the per-frame view draws.
     """
-    views_dir, refine_dir = Path(views_dir), Path(refine_dir)
-    cam_path = views_dir / "cameras.json"
-    if not cam_path.exists():
-        raise FileNotFoundError(f"{cam_path}: no cameras.json in the views folder")
-    cams = load_cameras(cam_path)
+    views = read_views(views_dir)
+    cams = views.cameras
     names = list(cams)
     w = view_weights(names, s2)
     keep = [i for i in range(len(names)) if w[i] > 0]
-    fallback = None
-    if (views_dir / "background.npy").exists():
-        fallback = np.load(views_dir / "background.npy")
+    fallback = views.background()
     frames, bgs, h = [], [], hashlib.sha256()
     for i in keep:
         name, cam = names[i], cams[names[i]]
         if (cam.height, cam.width) != tuple(size):
             raise ValueError(
-                f"{cam_path}: view {name} is {cam.width}×{cam.height}, the input views "
-                f"{size[1]}×{size[0]}"
+                f"{views.path / 'cameras.json'}: view {name} is {cam.width}×{cam.height}, "
+                f"the input views {size[1]}×{size[0]} (session {views.session})"
             )
-        rp, ap = refine_dir / f"{name}.npy", views_dir / f"{name}_alpha.npy"
-        for p_ in (rp, ap):
-            if not p_.exists():
-                raise FileNotFoundError(f"{p_}: missing (view {name})")
-        fr = np.load(rp)
-        if fr.ndim == 4 and fr.shape[-1] == 1:
-            fr = fr[..., 0]
-        al = np.load(ap)
-        if fr.ndim != 3 or fr.shape[1:] != tuple(size) or al.shape[1:] != tuple(size):
+        fr = read_refined(refine_dir, name)
+        al = views.alpha(name)
+        if fr.shape[1:] != tuple(size) or al.shape[1:] != tuple(size):
             raise ValueError(
-                f"{rp}: refined frames {fr.shape} / alpha {al.shape} do not match the "
-                f"{size[1]}×{size[0]} views"
+                f"{Path(refine_dir) / (name + '.npy')}: refined frames {fr.shape} / alpha "
+                f"{al.shape} do not match the {size[1]}×{size[0]} views "
+                f"(session {views.session})"
             )
         T = min(fr.shape[0], al.shape[0])
-        fr = to_unit(fr[:T])
+        fr = fr[:T]
         bg = refined_background(fr, al[:T].astype(np.float32), float(s2["bg_alpha_max"]), fallback)
         frames.append(fr)
         bgs.append(bg)

@@ -126,6 +126,53 @@ def read_masks(
     return MasksFolder(folder, session, out)
 
 
+def read_merges(folder: str | Path, session: str) -> dict[int, dict[int, set[int]]]:
+    """``{frame position: {merged bubble: parent bubbles}}`` from ``folder/events.csv``
+    (``merge`` rows of any camera; parents and children are ``+``-joined bubble ids).
+
+    A missing file (masks from elsewhere) means no merges are known: ``{}``.
+
+    Raises:
+        ValueError: a file that is not the mask stage's event table, naming it and the
+            session.
+    """
+    path = Path(folder) / EVENTS
+    out: dict[int, dict[int, set[int]]] = {}
+    if not path.exists():
+        return out
+    try:
+        ev = pd.read_csv(path, dtype=str, keep_default_na=False)
+        rows = ev[ev["event"] == "merge"]
+        for f, par, chi in zip(rows["frame"], rows["parents"], rows["children"], strict=True):
+            if not par.strip():
+                continue  # no parent bubble known: nothing to take a history from
+            for c in str(chi).split("+"):
+                d = out.setdefault(int(f), {}).setdefault(int(c), set())
+                d.update(int(q) for q in str(par).split("+"))
+    except (KeyError, ValueError, pd.errors.ParserError) as e:
+        raise ValueError(
+            f"{path}: session {session}: not a merge/split event table of the mask stage ({e})"
+        ) from e
+    return out
+
+
+def read_anchors(folder: str | Path, session: str) -> pd.DataFrame | None:
+    """``folder/anchors.csv`` (``frame, bubble, x, y, z, ...``: triangulated bubble
+    centres, m), or None when the masks have none (written before it existed).
+
+    Raises:
+        ValueError: a table without those columns, naming the file and the session.
+    """
+    path = Path(folder) / ANCHORS
+    if not path.is_file():
+        return None
+    tab = pd.read_csv(path)
+    missing = {"frame", "bubble", "x", "y", "z"} - set(tab.columns)
+    if missing:
+        raise ValueError(f"{path}: session {session}: anchors lack columns {sorted(missing)}")
+    return tab
+
+
 def write_masks(
     folder: str | Path,
     labels: Mapping[str, np.ndarray],

@@ -115,6 +115,24 @@ class ViewsFolder:
         """(T, H, W) float32 [0, 1] frames of ``view``."""
         return unit_float(self.stored(view))
 
+    def alpha(self, view: str) -> np.ndarray:
+        """(T, H, W) accumulated alpha of ``view`` as stored (float16)."""
+        path = self.path / f"{view}_alpha.npy"
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no alpha of view {view} (session {self.session})")
+        alpha = np.load(path)
+        if alpha.ndim != 3:
+            raise ValueError(
+                f"{path}: expected a (T, H, W) alpha stack, got {alpha.shape} "
+                f"(session {self.session})"
+            )
+        return alpha
+
+    def background(self) -> np.ndarray | None:
+        """The (H, W) float32 ``background.npy``, or None when the folder has none."""
+        path = self.path / BACKGROUND
+        return np.load(path) if path.is_file() else None
+
 
 def read_views(folder: str | os.PathLike) -> ViewsFolder:
     """Read a views folder's ``cameras.json``.

@@ -29,25 +29,15 @@ from skimage.feature import peak_local_max
 from skimage.filters import apply_hysteresis_threshold
 from skimage.segmentation import watershed
 
+from surfphase.folders.frames import unit_grey
 from surfphase.masks.params import CLASSICAL_DEFAULTS
 
 
 def to_unit_float(frame: np.ndarray) -> np.ndarray:
-    """A frame (H, W) or (H, W, C) of uint8/uint16/float → float32 grey image in [0, 1].
-
-    Integer frames are divided by their dtype's maximum; float frames are clipped.
-    Colour frames are averaged over channels.
-    """
-    a = np.asarray(frame)
-    if np.issubdtype(a.dtype, np.integer):
-        out = a.astype(np.float32) / float(np.iinfo(a.dtype).max)
-    else:
-        out = np.clip(a.astype(np.float32), 0.0, 1.0)
-    if out.ndim == 3:
-        out = out.mean(axis=2)
-    if out.ndim != 2:
-        raise ValueError(f"expected a (H, W) or (H, W, C) frame, got shape {a.shape}")
-    return out
+    """A frame (H, W) or (H, W, C) of uint8/uint16/float → float32 grey image in [0, 1]
+    (:func:`surfphase.folders.frames.unit_grey`: integers divided by their dtype's
+    maximum, floats clipped, colour channels averaged; other dtypes are refused)."""
+    return unit_grey(frame)
 
 
 def _poly_design(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
