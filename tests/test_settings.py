@@ -110,3 +110,38 @@ def test_each_stage_default_is_written_once():
     assert not twice
     assert set(schema["properties"]["refine"]["properties"]) == set(REFINE_DEFAULTS)
     assert STAGE2_DEFAULTS["far_views"] == REFINE_DEFAULTS["far_views"]
+
+
+def test_the_example_config_shows_the_stage_defaults():
+    """config/config.yaml (the demo campaign's, and the example users copy) lists stage
+    settings with their values: each equals its stage module's default, so it cannot
+    drift from them; the demo's own choices are named here."""
+    from pathlib import Path
+
+    import yaml
+
+    from surfphase.fit.params import DEFAULTS as FIT
+    from surfphase.fit.params import STAGE2_DEFAULTS
+    from surfphase.masks.params import DEFAULTS as MASKS
+    from surfphase.mesh.params import DEFAULTS as MESH
+    from surfphase.views_params import REFINE_DEFAULTS
+
+    demo_choices = {"refine.enabled"}  # the demo refines (it ships clips)
+    workflow_keys = {"mesh.window"}  # the workflow's own (schema default)
+    root = Path(__file__).resolve().parents[1]
+    cfg = yaml.safe_load((root / "config/config.yaml").read_text())
+    differ = []
+
+    def walk(prefix: str, defaults: dict, values: dict) -> None:
+        for key, value in values.items():
+            name = f"{prefix}.{key}"
+            if isinstance(value, dict) and isinstance(defaults.get(key), dict):
+                walk(name, defaults[key], value)
+            elif name not in demo_choices | workflow_keys and defaults.get(key, object()) != value:
+                differ.append(name)
+
+    owners = {"fit": FIT, "fit2": STAGE2_DEFAULTS, "masks": MASKS, "mesh": MESH}
+    owners["refine"] = REFINE_DEFAULTS
+    for block, defaults in owners.items():
+        walk(block, defaults, cfg.get(block) or {})
+    assert not differ
