@@ -28,7 +28,8 @@ def test_ablations_dry_run(tmp_path: Path):
             (tmp_path / "res" / s / d).mkdir(exist_ok=True)
         (tmp_path / "res" / s / "fit" / "surfels.npz").write_bytes(b"")
     targets = "res/s1/evaluate/metrics.json"
-    over = "evaluate:\n  ablations: [no_sdf, no_guidance]\n  region_scale: 2.0\n"
+    over = "mesh:\n  surface: fused\n"  # the fits' own geometry: one mesh per fit
+    over += "evaluate:\n  ablations: [no_sdf, no_guidance]\n  region_scale: 2.0\n"
     r = _dry_run(tmp_path, over, targets)
     assert r.returncode == 0, r.stdout + r.stderr
     jobs = [b for b in r.stdout.split("\n\n") if "rule fit_ablation:" in b]
@@ -50,10 +51,14 @@ def test_ablations_dry_run(tmp_path: Path):
     r = _dry_run(tmp_path, over + "  compare_meshes: false\n", targets)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "rule mesh_compare:" not in r.stdout and "--compare-meshes" not in r.stdout
+    # the hull surface (the default) is made from the masks alone: no mesh per fit
+    r = _dry_run(tmp_path, over.replace("surface: fused", "surface: hull"), targets)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "rule mesh_compare:" not in r.stdout and "--compare-meshes" not in r.stdout
     # refinement on: the final fit is stage 2, stage 1 is scored beside it
     (tmp_path / "res" / "s1" / "fit2").mkdir()
     (tmp_path / "res" / "s1" / "fit2" / "surfels.npz").write_bytes(b"")
-    r = _dry_run(tmp_path, "refine:\n  enabled: true\n", targets)
+    r = _dry_run(tmp_path, "refine:\n  enabled: true\nmesh:\n  surface: fused\n", targets)
     assert r.returncode == 0, r.stdout + r.stderr
     ev = next(b for b in r.stdout.split("\n\n") if "rule evaluate:" in b)
     assert "--fit $(dirname res/s1/fit2/surfels.npz)" in ev
