@@ -84,19 +84,6 @@ def photometric_terms(
     return (1 - lambda_dssim) * l1_v + lambda_dssim * dssim_v, l1_v, dssim_v
 
 
-def photometric_loss(
-    rendered: torch.Tensor, observed: torch.Tensor, lambda_dssim: float = 0.2
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """:func:`photometric_terms` of (C, H, W, D) images summed over the C views.
-
-    Returns ``(loss, l1_mean, dssim_mean)``, scalars; the last two are per-view means
-    for logging.
-    """
-    loss_v, l1_v, dssim_v = photometric_terms(rendered, observed, lambda_dssim)
-    C = rendered.shape[0]
-    return loss_v.sum(), l1_v.sum() / C, dssim_v.sum() / C
-
-
 def normal_consistency(
     normals: torch.Tensor, normals_from_depth: torch.Tensor, alphas: torch.Tensor | None = None
 ) -> torch.Tensor:
