@@ -22,7 +22,12 @@ lint: $(STAMP)
 	$(BIN)/ruff check surfphase tests
 	$(BIN)/snakemake --lint --cores 1
 
+# The renderer's numba kernels are compiled (or loaded from their cache) once, before the
+# parallel test workers and workflow jobs that would otherwise each compile them.
+KERNELS := $(BIN)/python -c "from surfphase.render.fused import compile_kernels; compile_kernels()"
+
 test: $(STAMP) lint
+	$(KERNELS)
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 # The demo campaign is generated once (written whole; demo/synth.json is its last file):
@@ -33,6 +38,7 @@ demo/synth.json: | $(STAMP)
 demo-data: demo/synth.json
 
 demo: demo-data
+	$(KERNELS)
 	$(BIN)/snakemake --cores $(CORES) --keep-going --rerun-incomplete
 	$(BIN)/snakemake --report results/report.html
 	@echo "Report: results/report.html; campaign page: results/campaign/index.html;"
