@@ -40,5 +40,8 @@ DEFAULTS: dict = {
     # giving only the vertices' velocities (surfphase.mesh.hull.bubble_hull_volume).
     "surface": "hull",
     "hull_voxels_per_radius": 8.0,
+    # ... and each slice's ellipse centre a straight-line fit over this many slices on
+    # either side (surfphase.mesh.hull.smooth_centres; 0: each slice's own)
+    "hull_centre_slices": 4,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }

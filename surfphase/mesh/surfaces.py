@@ -113,6 +113,7 @@ def hull_mesh_frame(
             vol = bubble_hull_volume(
                 views, labels, b, centre, radius,
                 float(p["hull_voxels_per_radius"]), float(p["trunc_voxels"]),
+                int(p["hull_centre_slices"]),
             )  # fmt: skip
             if vol is not None:
                 break
