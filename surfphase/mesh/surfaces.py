@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from surfphase.cameras import Camera, orbit_cameras
 from surfphase.mesh.cleanup import clean_mesh
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
-from surfphase.mesh.hull import bubble_hull_volume, bubble_spheres, elliptic_hull_distance
+from surfphase.mesh.hull import bubble_hull_volume, bubble_pieces, elliptic_hull_distance
 
 
 def vertex_velocities(
@@ -99,19 +99,21 @@ def hull_mesh_frame(
 
     Every id that both input views' (H, W) labels show is meshed on its own grid
     (:func:`surfphase.mesh.hull.bubble_hull_volume`, ``hull_voxels_per_radius``), cut at
-    the plate (``floor_y``) and cleaned. Where the silhouettes' centroids triangulate to
-    no point both views see (the nucleation region, id 0, can hold different pieces in
-    each view), ``hints`` (id → (3,) centre m, radius m; e.g. from the fit's surfels)
-    place the search instead. Returns (V, 3) vertices (m), (F, 3) faces and (V,) each
+    the plate (``floor_y``) and cleaned; an id in several pieces (the nucleation region,
+    id 0, can hold different pieces in each view) once per pair of pieces the two views
+    agree on (:func:`surfphase.mesh.hull.bubble_pieces`). Where the silhouettes'
+    centroids triangulate to no point both views see, ``hints`` (id → (3,) centre m,
+    radius m; e.g. from the fit's surfels) place the search instead. Returns (V, 3) vertices (m), (F, 3) faces and (V,) each
     vertex's bubble id.
     """
     views = [c.undistorted() for c in inputs]
     verts, faces, ids, n = [], [], [], 0
-    for b, sphere in bubble_spheres(views, labels).items():
+    for b, centre, radius, masks in bubble_pieces(views, labels):
+        own = [np.where(m, b, -1) for m in masks]
         vol = None
-        for centre, radius in [sphere] + ([hints[b]] if hints and b in hints else []):
+        for c, r in [(centre, radius)] + ([hints[b]] if hints and b in hints else []):
             vol = bubble_hull_volume(
-                views, labels, b, centre, radius,
+                views, own, b, c, r,
                 float(p["hull_voxels_per_radius"]), float(p["trunc_voxels"]),
                 int(p["hull_centre_slices"]),
             )  # fmt: skip
