@@ -205,7 +205,9 @@ def test_an_id_in_several_pieces_is_meshed_per_pair_the_views_agree_on():
     comp = vertex_components(faces, len(verts))
     assert len(np.unique(comp)) == 2
     for c, r in spheres.values():
-        centres = [0.5 * (verts[comp == k].min(0) + verts[comp == k].max(0)) for k in np.unique(comp)]
+        centres = [
+            0.5 * (verts[comp == k].min(0) + verts[comp == k].max(0)) for k in np.unique(comp)
+        ]
         k = int(np.argmin([np.linalg.norm(x - c) for x in centres]))
         assert np.linalg.norm(centres[k] - c) < 0.1 * r
         mine = comp == np.unique(comp)[k]
