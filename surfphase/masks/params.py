@@ -101,7 +101,7 @@ ASSOCIATE_DEFAULTS: dict = {
 ANCHOR_DEFAULTS: dict = {
     # Width (pixels) of the band around each mask whose partial darkness counts as
     # partial cover (anti-aliased, blurred edges): 0 = the binary mask's centroid.
-    "ring_px": 2,
+    "ring_px": 1,
     # Two views agree on a bubble when its triangulated centre reprojects within this
     # many pixels of both silhouette centroids ...
     "max_reproj_px": 1.0,
