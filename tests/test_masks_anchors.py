@@ -372,6 +372,31 @@ def test_cut_centres_give_none_when_too_little_is_visible():
     assert cut_centres(0.6 * cover, np.where(cover >= 0.5, 2, -1), {2}, 2, 0.0) == {}
 
 
+@pytest.mark.parametrize("frac", [0.3, 0.4, 0.5])
+def test_a_bubble_leaving_the_frame_keeps_the_shape_its_track_showed_whole(frac):
+    """A bubble rising out of the top of the frame: whole in frame 0, then 50 to 30 %
+    inside, too little for an ellipse of its own. Its centre is the whole frame's
+    ellipse moved onto the visible outline: within 0.2 px of the truth, with the whole
+    area; below ``min_visible_tracked`` of it inside, none."""
+    from surfphase.masks.anchors import tracked_cut_centres
+
+    a, b, theta, u0 = 11.0, 8.0, 0.3, 23.3
+    rows = [20.0, centre_row_for_visible(frac, a, b, theta)]
+    covers = [ellipse_cover(40, 48, u0, v, a, b, theta) for v in rows]
+    labels = np.stack([np.where(c >= 0.5, 2, -1) for c in covers]).astype(np.int32)
+    contrasts = [0.6 * c for c in covers]
+    assert border_ids(labels[1]) == {2} and border_ids(labels[0]) == set()
+    assert cut_centres(contrasts[1], labels[1], {2}, 1, ANCHOR_DEFAULTS["min_visible"]) == {}
+    lim = ANCHOR_DEFAULTS["min_visible_tracked"]
+    got = tracked_cut_centres(contrasts, labels, {1: {2}}, 1, lim)
+    u, v, area = got[1][2]
+    assert np.hypot(u - u0, v - rows[1]) < 0.2, (u - u0, v - rows[1])
+    assert area == pytest.approx(np.pi * a * b, rel=0.03)
+    # Less inside than min_visible_tracked, or no frame showing it whole: no centre.
+    assert tracked_cut_centres(contrasts, labels, {1: {2}}, 1, frac + 0.05) == {}
+    assert tracked_cut_centres(contrasts[1:], labels[1:], {0: {2}}, 1, lim) == {}
+
+
 def test_anchor_table_triangulates_a_bubble_cut_by_one_view_border():
     c0, _ = _rig()
     r = 0.0009

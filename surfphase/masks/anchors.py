@@ -250,6 +250,66 @@ def fit_outline(points: np.ndarray) -> tuple[float, float, float] | None:
     return float(u), float(v), float(area)
 
 
+def _owners(lab: np.ndarray, ring_px: int) -> np.ndarray:
+    """Each pixel's nearest region id (the labels themselves where ``ring_px`` is 0)."""
+    if ring_px <= 0:
+        return lab
+    _, (ri, ci) = ndi.distance_transform_edt(lab < 0, return_indices=True)
+    return lab[ri, ci]
+
+
+def visible_outline(
+    contrast: np.ndarray,
+    labels: np.ndarray,
+    owner: np.ndarray,
+    b: int,
+    ring_px: int,
+    margin_px: int = 1,
+) -> tuple[np.ndarray, float] | None:
+    """The visible outline of region ``b`` of one frame, for an outline fit.
+
+    The sub-pixel half-cover line (level 0.5 of the cover weights of
+    :func:`coverage_centroids`, marching squares) of the region, its bright core filled
+    where the frame cuts it open; its points within ``margin_px`` of the outermost pixel
+    centres (the frame's cut) or within ``ring_px`` + 1 pixels of another region (a
+    shared edge) are left out.
+
+    Args:
+        contrast: (H, W) relative darkness in [0, 1]. labels: (H, W) int, −1 background.
+        owner: (H, W) nearest region id of each pixel (:func:`_owners`).
+        b: the region. ring_px: band width of the cover weights, pixels.
+        margin_px: as :func:`cut_centres`.
+
+    Returns:
+        ``(points, cover)``: (N, 2) kept outline points (pixels, column, row) and the
+        region's cover-weighted area (pixels²); None without an outline.
+    """
+    lab = np.asarray(labels)
+    h, w = lab.shape
+    m = lab == b
+    if not m.any():
+        return None
+    sl = _crop(m, int(ring_px) + 2)
+    y0, y1, x0, x1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
+    mm = _fill_to_border(m[sl], (y0 == 0, y1 == h, x0 == 0, x1 == w))
+    cover = _cover_weights(mm, np.asarray(contrast, np.float64)[sl], owner[sl] == b, ring_px)
+    lines = find_contours(np.pad(cover, 1), 0.5)  # closed: zero cover outside
+    if not lines:
+        return None
+    pts = max(lines, key=len)[:, ::-1] + (x0 - 1.0, y0 - 1.0)  # (column, row)
+    near = ndi.binary_dilation((lab[sl] >= 0) & (lab[sl] != b), iterations=int(ring_px) + 1)
+    iy = np.clip(np.rint(pts[:, 1]).astype(int) - y0, 0, y1 - y0 - 1)
+    ix = np.clip(np.rint(pts[:, 0]).astype(int) - x0, 0, x1 - x0 - 1)
+    keep = (
+        (pts[:, 0] >= margin_px)
+        & (pts[:, 0] <= w - 1 - margin_px)
+        & (pts[:, 1] >= margin_px)
+        & (pts[:, 1] <= h - 1 - margin_px)
+        & ~near[iy, ix]
+    )
+    return pts[keep], float(cover.sum())
+
+
 def cut_centres(
     contrast: np.ndarray,
     labels: np.ndarray,
@@ -259,13 +319,8 @@ def cut_centres(
     margin_px: int = 1,
 ) -> dict[int, tuple[float, float, float]]:
     """Centre and full area of each silhouette of ``ids`` that the image border cuts,
-    from the ellipse fitted to the visible part of its outline.
-
-    The outline is the sub-pixel half-cover line (level 0.5 of the cover weights of
-    :func:`coverage_centroids`, marching squares) of the region, its bright core filled
-    where the frame cuts it open; its points within ``margin_px`` of the outermost pixel
-    centres (the frame's cut) or within ``ring_px`` + 1 pixels of another region (a
-    shared edge) are left out. A silhouette gets a centre where the fit has at least
+    from the ellipse fitted to the visible part of its outline
+    (:func:`visible_outline`). A silhouette gets a centre where the fit has at least
     ``_MIN_OUTLINE_POINTS`` points and the visible (cover-weighted) area is at least
     ``min_visible`` of the fitted ellipse's.
 
@@ -284,39 +339,143 @@ def cut_centres(
         area (pixels², the whole silhouette's, hidden part included).
     """
     lab = np.asarray(labels)
-    c = np.asarray(contrast, dtype=np.float64)
-    h, w = lab.shape
     out: dict[int, tuple[float, float, float]] = {}
     ids = {int(b) for b in ids if (lab == b).any()}
     if not ids or float(min_visible) > 1.0:
         return out
-    owner = lab
-    if ring_px > 0:
-        _, (ri, ci) = ndi.distance_transform_edt(lab < 0, return_indices=True)
-        owner = lab[ri, ci]
+    owner = _owners(lab, ring_px)
     for b in sorted(ids):
-        m = lab == b
-        sl = _crop(m, int(ring_px) + 2)
-        y0, y1, x0, x1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
-        mm = _fill_to_border(m[sl], (y0 == 0, y1 == h, x0 == 0, x1 == w))
-        cover = _cover_weights(mm, c[sl], owner[sl] == b, ring_px)
-        lines = find_contours(np.pad(cover, 1), 0.5)  # closed: zero cover outside
-        if not lines:
+        vis = visible_outline(contrast, lab, owner, b, ring_px, margin_px)
+        if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
             continue
-        pts = max(lines, key=len)[:, ::-1] + (x0 - 1.0, y0 - 1.0)  # (column, row)
-        near = ndi.binary_dilation((lab[sl] >= 0) & (lab[sl] != b), iterations=int(ring_px) + 1)
-        iy = np.clip(np.rint(pts[:, 1]).astype(int) - y0, 0, y1 - y0 - 1)
-        ix = np.clip(np.rint(pts[:, 0]).astype(int) - x0, 0, x1 - x0 - 1)
-        keep = (
-            (pts[:, 0] >= margin_px)
-            & (pts[:, 0] <= w - 1 - margin_px)
-            & (pts[:, 1] >= margin_px)
-            & (pts[:, 1] <= h - 1 - margin_px)
-            & ~near[iy, ix]
-        )
-        if keep.sum() < _MIN_OUTLINE_POINTS:
-            continue
-        fit = fit_outline(pts[keep])
-        if fit is not None and float(cover.sum()) >= float(min_visible) * fit[2]:
+        fit = fit_outline(vis[0])
+        if fit is not None and vis[1] >= float(min_visible) * fit[2]:
             out[b] = fit
+    return out
+
+
+def outline_ellipse(points: np.ndarray) -> tuple[float, float, float, float, float] | None:
+    """``(u, v, a, b, angle)`` of the ellipse fitted to (N, 2) outline points (pixels;
+    ``cv2.fitEllipse``): centre, semi-axes (pixels) and orientation (degrees); None
+    where the fit fails or is degenerate."""
+    try:
+        (u, v), (da, db), ang = cv2.fitEllipse(np.asarray(points, np.float32))
+    except cv2.error:
+        return None
+    if not np.isfinite([u, v, da, db, ang]).all() or min(da, db) <= 0:
+        return None
+    return float(u), float(v), float(da) / 2, float(db) / 2, float(ang)
+
+
+def shape_centre(
+    points: np.ndarray, shape: tuple[float, float, float, float, float]
+) -> tuple[float, float, float] | None:
+    """Centre of a known ellipse fitted to part of its outline: only the translation.
+
+    Args:
+        points: (N, 2) visible outline points, pixels (column, row), N ≥ 3.
+        shape: ``(u, v, a, b, angle)`` of :func:`outline_ellipse`: the start centre, the
+            semi-axes (pixels) and the orientation (degrees, ``cv2.fitEllipse``'s).
+
+    Returns:
+        ``(u, v, rms)``: the centre (pixels) minimising the points' radial distances to
+        the ellipse (least squares, ``scipy.optimize.least_squares``) and their rms
+        (pixels); None where it does not converge.
+    """
+    from scipy.optimize import least_squares
+
+    u0, v0, a, b, ang = shape
+    t = np.radians(ang)
+    rot = np.array([[np.cos(t), np.sin(t)], [-np.sin(t), np.cos(t)]])
+    inv = np.diag([1.0 / a**2, 1.0 / b**2])
+    A = rot.T @ inv @ rot
+    scale = float(np.sqrt(a * b))
+    P = np.asarray(points, np.float64)
+
+    def resid(c):
+        q = P - c
+        return (np.sqrt(np.einsum("ni,ij,nj->n", q, A, q)) - 1.0) * scale
+
+    best = None
+    for start in (np.array([u0, v0]), P.mean(axis=0)):
+        r = least_squares(resid, start, method="lm")
+        if r.success and (best is None or r.cost < best.cost):
+            best = r
+    if best is None:
+        return None
+    rms = float(np.sqrt(np.mean(best.fun**2)))
+    return float(best.x[0]), float(best.x[1]), rms
+
+
+def tracked_cut_centres(
+    contrasts: Sequence[np.ndarray],
+    labels: np.ndarray,
+    missing: Mapping[int, set[int]],
+    ring_px: int = ANCHOR_DEFAULTS["ring_px"],
+    min_visible: float = ANCHOR_DEFAULTS["min_visible_tracked"],
+    max_rms: float = ANCHOR_DEFAULTS["max_shape_rms"],
+    margin_px: int = 1,
+) -> dict[int, dict[int, tuple[float, float, float]]]:
+    """Centres of border-cut silhouettes too little inside the frame for an ellipse of
+    their own, from the shape their track shows whole.
+
+    A bubble that leaves (or enters) the frame is seen whole in other frames of the same
+    view: the ellipse fitted to its outline in the nearest frame where the border does
+    not cut it (:func:`outline_ellipse`) is its shape, and its centre in the cut frame is
+    that ellipse moved onto the visible outline (:func:`shape_centre`). A centre is kept
+    where the outline has at least ``_MIN_OUTLINE_POINTS`` points, their rms distance is
+    at most ``max_rms`` of the ellipse's equivalent radius √(ab) and the visible
+    (cover-weighted) area is at least ``min_visible`` of the ellipse's.
+
+    Args:
+        contrasts: per frame position, (H, W) relative darkness in [0, 1].
+        labels: (T, H, W) int labels of the view, −1 background.
+        missing: ``{position: ids}`` of the cut silhouettes without a centre.
+        ring_px, margin_px: as :func:`cut_centres`.
+        min_visible: least visible fraction of the moved ellipse.
+        max_rms: largest rms distance of the outline to the moved ellipse, over its
+            equivalent radius.
+
+    Returns:
+        ``{position: {id: (u, v, area)}}``: centre (pixels) and the shape's area
+        (pixels²).
+    """
+    lab = np.asarray(labels)
+    shapes: dict[tuple[int, int], tuple | None] = {}
+
+    def whole(t: int, b: int):
+        if (t, b) not in shapes:
+            shapes[(t, b)] = None
+            if b not in border_ids(lab[t]):
+                vis = visible_outline(contrasts[t], lab[t], _owners(lab[t], ring_px), b, ring_px)
+                if vis is not None and len(vis[0]) >= _MIN_OUTLINE_POINTS:
+                    shapes[(t, b)] = outline_ellipse(vis[0])
+        return shapes[(t, b)]
+
+    out: dict[int, dict[int, tuple[float, float, float]]] = {}
+    wanted = set().union(*missing.values()) if missing else set()
+    frames_of: dict[int, list[int]] = {}
+    for k in range(lab.shape[0]):
+        for b in set(np.unique(lab[k]).tolist()) & wanted:
+            frames_of.setdefault(int(b), []).append(k)
+    for t, ids in sorted(missing.items()):
+        owner = None
+        for b in sorted(ids):
+            ref = None
+            for t2 in sorted(frames_of.get(b, []), key=lambda k: (abs(k - t), k)):
+                if t2 != t:
+                    ref = whole(t2, b)
+                    if ref is not None:
+                        break
+            if ref is None:
+                continue
+            owner = _owners(lab[t], ring_px) if owner is None else owner
+            vis = visible_outline(contrasts[t], lab[t], owner, b, ring_px, margin_px)
+            if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
+                continue
+            fit = shape_centre(vis[0], ref)
+            area = float(np.pi * ref[2] * ref[3])
+            rms_max = max_rms * float(np.sqrt(ref[2] * ref[3]))
+            if fit is not None and fit[2] <= rms_max and vis[1] >= min_visible * area:
+                out.setdefault(t, {})[b] = (fit[0], fit[1], area)
     return out

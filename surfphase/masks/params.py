@@ -117,6 +117,13 @@ ANCHOR_DEFAULTS: dict = {
     # fitted to its visible outline (cut_centres) when at least this fraction (0-1) of
     # the fitted ellipse's area is inside the frame; above 1: never (no centre).
     "min_visible": 0.6,
+    # One with less inside gets its centre from the shape its own track shows whole in
+    # the nearest frame of that view (tracked_cut_centres: the ellipse moved onto the
+    # visible outline) when at least this fraction of that ellipse is inside the frame
+    # and the outline's rms distance to it is at most max_shape_rms of its equivalent
+    # radius; min_visible_tracked above 1: never.
+    "min_visible_tracked": 0.25,
+    "max_shape_rms": 0.05,
 }
 
 

@@ -184,12 +184,15 @@ def frame_anchors(
     first two views' bubbles, from their sub-pixel silhouette centroids; a silhouette
     that touches a view's border has its centre and full area from the ellipse fitted to
     its visible outline (:func:`surfphase.masks.anchors.cut_centres`) when at least
-    ``anchors: min_visible`` of it is in the frame, and none in that frame otherwise."""
+    ``anchors: min_visible`` of it is in the frame, else from the shape its track shows
+    whole in another frame (:func:`surfphase.masks.anchors.tracked_cut_centres`,
+    ``min_visible_tracked``), and none in that frame otherwise."""
     names = list(stacks)[:2]
     cp, ap = params["classical"], params["anchors"]
     cents, cuts = [], []
     for c in names:
-        per, per_cut = [], []
+        per, per_cut, cons = [], [], []
+        missing: dict[int, set[int]] = {}
         for t in range(stacks[c].shape[0]):
             con = classical.relative_contrast(stacks[c][t], cp, backgrounds[c])
             cen = anchors.coverage_centroids(con, labels[c][t], int(ap["ring_px"]))
@@ -199,6 +202,17 @@ def frame_anchors(
             )
             per.append({**{b: v for b, v in cen.items() if b not in cut}, **fits})
             per_cut.append(set(fits))
+            missing[t] = cut - {0} - set(fits)
+            cons.append(con)
+        if float(ap["min_visible_tracked"]) <= 1.0 and any(missing.values()):
+            tracked = anchors.tracked_cut_centres(
+                cons, labels[c], {t: m for t, m in missing.items() if m},
+                int(ap["ring_px"]), float(ap["min_visible_tracked"]),
+                float(ap["max_shape_rms"]),
+            )  # fmt: skip
+            for t, fits in tracked.items():
+                per[t].update(fits)
+                per_cut[t] |= set(fits)
         cents.append(per)
         cuts.append(per_cut)
     cams = [cameras[c].undistorted() for c in names]
