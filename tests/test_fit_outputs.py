@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from surfphase.fit.outputs import bubble_table
 
@@ -138,6 +139,56 @@ def test_track_smoothing_against_analytic_tracks():
     # The centroids and velocities agree: d/dt of the reported track is the velocity.
     dydt = np.gradient(smooth["y"].to_numpy(), t)
     assert np.abs(dydt - smooth["vy"]).max() < 1e-12
+
+
+def test_quadratic_t_is_numpys_polyfit_t_statistic():
+    from surfphase.fit.outputs import quadratic_t
+
+    rng = np.random.default_rng(1)
+    t = np.arange(11) / 3000.0
+    y = np.stack([0.1 * t + 40 * t**2, -0.2 * t], axis=1) + rng.normal(0, 3e-6, (11, 2))
+    ref = []
+    for k in range(2):  # polyfit's covariance is scaled by χ²/(n − 3), as quadratic_t's
+        coef, cov = np.polyfit(t, y[:, k], 2, cov=True)
+        ref.append(abs(coef[0]) / np.sqrt(cov[0, 0]))
+    assert quadratic_t(t, y) == pytest.approx(max(ref), rel=1e-6)
+    assert quadratic_t(t[:4], y[:4]) == 0.0
+
+
+def test_track_ends_take_a_parabola_only_where_the_track_curves():
+    """An order-1 smoothing lags an accelerating bubble over a track's last window; with
+    ``end_window_s`` the ends of a clearly curved track take a moving parabola (end
+    velocity error several times lower), and a straight noisy track is left exactly as
+    without it (its curvature is not significant)."""
+    import pandas as pd
+
+    from surfphase.fit.outputs import smooth_tracks
+
+    fps, n = 2000.0, 25
+    t = np.arange(n) / fps
+    rng = np.random.default_rng(0)
+    jitter = rng.normal(0, 3e-6, n)
+    curved = 0.002 + 0.06 * t + 0.5 * 15.0 * t**2 + jitter  # detaching: 15 m/s²
+    straight = 0.002 + 0.2 * t + jitter
+
+    def table_of(y):
+        return pd.DataFrame({"frame": np.arange(n), "time_s": t, "bubble": 1, "x": 0.0,
+                             "y": y, "z": 0.0, "vx": 0.0, "vy": np.nan, "vz": 0.0})  # fmt: skip
+
+    out = {}
+    for name, y in (("curved", curved), ("straight", straight)):
+        for ends in ((0.0, 0.0), (0.005, 5.0)):
+            tab = table_of(y)
+            smooth_tracks(tab, np.zeros(n, int), 0.003, 1, *ends)
+            out[name, ends[0]] = tab["vy"].to_numpy()
+    true_v = 0.06 + 15.0 * t
+    end = np.r_[0:3, n - 3 : n]  # the half windows at the two ends (7-frame window)
+    lag = np.abs(out["curved", 0.0][end] - true_v[end]).mean()
+    fixed = np.abs(out["curved", 0.005][end] - true_v[end]).mean()
+    assert fixed < 0.3 * lag, (fixed, lag)
+    # Inside (beyond the central differences next to the ends) nothing changes.
+    np.testing.assert_array_equal(out["curved", 0.0][4:-4], out["curved", 0.005][4:-4])
+    np.testing.assert_array_equal(out["straight", 0.0], out["straight", 0.005])
 
 
 def test_track_segments_end_at_a_merge():

@@ -82,31 +82,31 @@ def method_track_table(
     fit_dir: Path, window_s: float, order: int, min_track_frames: int | None = None
 ) -> pd.DataFrame:
     """The method's ``bubbles.csv`` as ``fit: track_window_s = window_s`` (and
-    ``track_order``) writes it, computed from the same fit's ``surfels.npz`` and, when
+    ``track_order``; the default ``track_end_window_s``, ``track_end_t``) writes it, computed from the same fit's ``surfels.npz`` and, when
     the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
     (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
     the table is a function of these)."""
     from surfphase.fit.outputs import anchored_table, bubble_table, nucleation_frames
+    from surfphase.fit.stage import DEFAULTS
     from surfphase.folders.fit import read_fit_surfels
     from surfphase.folders.ingest import read_ingest
     from surfphase.folders.masks import read_anchors, read_masks
 
+    ends = (float(DEFAULTS["track_end_window_s"]), float(DEFAULTS["track_end_t"]))
     arrays = read_fit_surfels(fit_dir)
     # The workflow's layout: results/<session>/{ingest,masks,fit}.
     ingest = read_ingest(Path(fit_dir).parent / "ingest")
     masks = Path(fit_dir).parent / "masks"
     anchors = read_anchors(masks, ingest.session)
     if anchors is None:
-        return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order)
+        return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order, ends)
     labels = list(read_masks(masks, ingest.input_cameras(), ingest.session).labels.values())
     frames = np.asarray(arrays["frame"], dtype=np.int64)
     nuc = nucleation_frames(labels, frames)
     table = bubble_table(arrays, arrays["time_s"], frames)
     if min_track_frames is None:
-        from surfphase.fit.stage import DEFAULTS
-
         min_track_frames = int(DEFAULTS["min_track_frames"])
-    return anchored_table(table, anchors, nuc, window_s, order, min_track_frames, len(frames))
+    return anchored_table(table, anchors, nuc, window_s, order, min_track_frames, len(frames), ends)
 
 
 def track_consistency(pred: pd.DataFrame) -> float:

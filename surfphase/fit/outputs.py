@@ -170,6 +170,7 @@ def bubble_table(
     frames: np.ndarray,
     track_window_s: float = 0.0,
     track_order: int = 2,
+    track_ends: tuple[float, float] = (0.0, 0.0),
 ) -> pd.DataFrame:
     """Per frame and bubble: centroid (m) and velocity (m/s) of the surfels bound at that
     frame (weights ``o·s_x·s_y`` at that frame).
@@ -237,7 +238,7 @@ def bubble_table(
     if track_window_s > 0 and len(table):
         pos = {int(f): t for t, f in enumerate(frames)}
         seg = track_segments(table, [pos[int(f)] for f in table["frame"]], bub, w)
-        smooth_tracks(table, seg, track_window_s, track_order)
+        smooth_tracks(table, seg, track_window_s, track_order, *track_ends)
     return table
 
 
@@ -260,6 +261,7 @@ def anchored_table(
     track_order: int,
     min_track_frames: int = 1,
     n_frames: int | None = None,
+    track_ends: tuple[float, float] = (0.0, 0.0),
 ) -> pd.DataFrame:
     """``bubbles.csv`` with each bubble's centre from its triangulated silhouettes.
 
@@ -279,6 +281,8 @@ def anchored_table(
         anchors: ``frame, bubble, x, y, z`` (m, lab frame).
         nucleation_frames: session frame indices where every view's masks show id 0.
         track_window_s, track_order: as ``fit: track_window_s``, ``track_order``.
+        track_ends: ``(fit: track_end_window_s, track_end_t)``
+            (:func:`smooth_tracks`' ``end_window_s``, ``end_t``).
     """
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
     nuc = table[(table["bubble"] == 0) & table["frame"].isin(sorted(nucleation_frames))]
@@ -300,7 +304,7 @@ def anchored_table(
             t = bub["time_s"].to_numpy()[rows]
             bub.loc[rows, vel] = np.gradient(bub[xyz].to_numpy(np.float64)[rows], t, axis=0)
     if track_window_s > 0 and len(bub):
-        smooth_tracks(bub, seg, track_window_s, track_order)
+        smooth_tracks(bub, seg, track_window_s, track_order, *track_ends)
     out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 
@@ -326,7 +330,30 @@ def track_segments(
     return seg
 
 
-def smooth_tracks(table: pd.DataFrame, seg: np.ndarray, window_s: float, order: int) -> None:
+def quadratic_t(times: np.ndarray, values: np.ndarray) -> float:
+    """The largest |t-statistic| of the quadratic coefficient, over the columns of
+    (n, D) ``values`` against (n,) ``times`` (s), of a least-squares parabola per column
+    (its residuals give the noise); 0 with fewer than 5 samples."""
+    n = len(times)
+    if n < 5:
+        return 0.0
+    x = (np.asarray(times, np.float64) - np.mean(times)) / max(float(np.ptp(times)), 1e-30)
+    X = np.stack([np.ones(n), x, x * x], axis=1)
+    y = np.asarray(values, np.float64).reshape(n, -1)
+    beta = np.linalg.lstsq(X, y, rcond=None)[0]
+    s2 = ((y - X @ beta) ** 2).sum(axis=0) / (n - 3)
+    var = float(np.linalg.inv(X.T @ X)[2, 2]) * s2
+    return float(np.max(np.abs(beta[2]) / np.sqrt(np.maximum(var, 1e-300))))
+
+
+def smooth_tracks(
+    table: pd.DataFrame,
+    seg: np.ndarray,
+    window_s: float,
+    order: int,
+    end_window_s: float = 0.0,
+    end_t: float = 0.0,
+) -> None:
     """Replace each track's centroids and velocities by a moving polynomial fit, in place.
 
     Along each track (``seg``, rows in time order, uniformly sampled), the centroid
@@ -337,6 +364,14 @@ def smooth_tracks(table: pd.DataFrame, seg: np.ndarray, window_s: float, order: 
     differences, one-sided at its ends: the ground truth's own convention). So the
     reported centroids and velocities agree by construction. Tracks of ``order + 1``
     frames or fewer, and the nucleation region (bubble 0), are left as they are.
+
+    A low order over the last window of a track lags an accelerating bubble (the
+    line's slope is the velocity of the window's middle): with ``end_window_s`` > 0, at
+    each end of a track whose centre is significantly curved over its first / last
+    ``end_window_s`` seconds (the parabola's quadratic coefficient more than ``end_t``
+    standard errors from 0 in some axis, :func:`quadratic_t`), the half window of rows
+    at that end takes a moving parabola over ``end_window_s`` (``savgol_filter`` of
+    order 2) instead.
     """
     from scipy.signal import savgol_filter
 
@@ -350,16 +385,30 @@ def smooth_tracks(table: pd.DataFrame, seg: np.ndarray, window_s: float, order: 
             continue
         t = table["time_s"].to_numpy()[rows]
         dt = float(np.median(np.diff(t)))
-        win = max(int(round(window_s / dt)), order + 2)
-        win += 1 - win % 2
-        win = min(win, len(rows) if len(rows) % 2 else len(rows) - 1)
+        win = _odd_window(window_s, dt, order, len(rows))
         if win <= order:
             continue
         p = table[xyz].to_numpy(np.float64)[rows]
         kw = dict(window_length=win, polyorder=order, axis=0, mode="interp")
         smooth = savgol_filter(p, **kw)
+        if end_window_s > 0 and order < 2:
+            w2 = _odd_window(end_window_s, dt, 2, len(rows))
+            if w2 >= 5:
+                para = savgol_filter(p, window_length=w2, polyorder=2, axis=0, mode="interp")
+                n, h = len(rows), win // 2
+                for rs, fit in ((slice(0, h), slice(0, w2)), (slice(n - h, n), slice(n - w2, n))):
+                    if quadratic_t(t[fit], p[fit]) > end_t:
+                        smooth[rs] = para[rs]
         table.loc[table.index[rows], xyz] = smooth
         table.loc[table.index[rows], vel] = np.gradient(smooth, t, axis=0)
+
+
+def _odd_window(window_s: float, dt: float, order: int, n: int) -> int:
+    """``window_s`` in frames of ``dt`` seconds: at least ``order + 2``, odd, at most the
+    longest odd number ≤ ``n``."""
+    win = max(int(round(window_s / dt)), order + 2)
+    win += 1 - win % 2
+    return min(win, n if n % 2 else n - 1)
 
 
 def load_surfels(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -432,6 +481,7 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
     shutil.rmtree(final, ignore_errors=True)
     os.replace(tmp_dir, final)
 
+    ends = (float(p["track_end_window_s"]), float(p["track_end_t"]))
     if p["anchor_centres"] and data.anchors is not None:
         table = anchored_table(
             bubble_table(arrays, times, frames),
@@ -441,10 +491,11 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
             int(p["track_order"]),
             int(p["min_track_frames"]),
             F,
+            ends,
         )
     else:
         table = bubble_table(
-            arrays, times, frames, float(p["track_window_s"]), int(p["track_order"])
+            arrays, times, frames, float(p["track_window_s"]), int(p["track_order"]), ends
         )
     atomic_write_text(out_dir / "bubbles.csv", table.to_csv(index=False))
     curves = pd.DataFrame([row for r in records for row in r["curves"]])

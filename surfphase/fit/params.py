@@ -99,6 +99,12 @@ DEFAULTS: dict = {
     "track_window_s": 0.003,  # > 0: centroids and velocities of each bubble track from a
     # moving polynomial over this many seconds (Savitzky-Golay; 0: per-frame values)
     "track_order": 1,  # polynomial order of that fit
+    # ... and at each end of a track whose centre curves significantly over its first /
+    # last track_end_window_s seconds (the quadratic coefficient of a parabola more than
+    # track_end_t standard errors from 0), a moving parabola over that window there: a
+    # straight line over a track's last window lags an accelerating bubble (0: off).
+    "track_end_window_s": 0.005,
+    "track_end_t": 5.0,
     # Two views leave a bubble's extent along their bisector (the mean viewing direction)
     # unseen: surfels may sit anywhere in the visual hull's long corners. With a number k,
     # after every step a surfel farther than k·r along that axis from its bubble's centre
