@@ -187,6 +187,38 @@ def test_hull_meshes_are_the_bubbles_each_on_its_own_grid(focal, ratio_tol):
         assert abs(ratio - 1) < ratio_tol, ratio
 
 
+def test_hull_is_moved_to_the_reported_centre():
+    """With ``centres`` a bubble's hull is moved so that its volume centroid is there
+    (within 2 % of r: voxel against mesh centroid), its shape (volume) unchanged; a
+    bubble without an entry stays where the hull puts it."""
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+
+    spheres = {3: (CENTRE + [-1.5e-3, 0, 0], 1e-3), 5: (CENTRE + [1.5e-3, 0.5e-3, 0], 0.6e-3)}
+    cams = _rig()
+    labels = [_sphere_labels(c, spheres) for c in cams]
+    p = mesh_params({"surface": "hull"})
+    v0, f0, id0 = hull_mesh_frame(cams, labels, p)
+    target = spheres[3][0] + np.array([0.0, 0.0, 0.3e-3])  # 0.3 r off in depth
+    v1, f1, id1 = hull_mesh_frame(cams, labels, p, centres={3: target})
+
+    def piece(v, f, ids, b):
+        mine = ids == b
+        keep = mine[f].all(axis=1)
+        return v[mine], (np.cumsum(mine) - 1)[f[keep]]
+
+    def centroid(v, f):
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        w = np.einsum("ij,ij->i", a, np.cross(b, c))
+        return ((a + b + c) / 4 * w[:, None]).sum(axis=0) / w.sum()
+
+    va, fa = piece(v1, f1, id1, 3)
+    assert np.linalg.norm(centroid(va, fa) - target) < 0.02 * 1e-3
+    vb, fb = piece(v0, f0, id0, 3)
+    assert abs(signed_volume(va, fa) / signed_volume(vb, fb) - 1) < 0.02
+    np.testing.assert_allclose(piece(v1, f1, id1, 5)[0], piece(v0, f0, id0, 5)[0])
+
+
 def test_an_id_in_several_pieces_is_meshed_per_pair_the_views_agree_on():
     """The nucleation region (id 0) as two attached spheres plus, in one view only, a
     speck of the same id the other view does not see: one closed mesh per sphere, each

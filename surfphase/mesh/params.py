@@ -43,5 +43,9 @@ DEFAULTS: dict = {
     # ... and each slice's ellipse centre a straight-line fit over this many slices on
     # either side (surfphase.mesh.hull.smooth_centres; 0: each slice's own)
     "hull_centre_slices": 4,
+    # ... and each bubble's hull moved so that its centroid is the bubble's centre in the
+    # fit's bubbles.csv (the triangulated sub-pixel silhouette centres, smoothed along
+    # its track), where the fit reports it (surfphase.mesh.surfaces.hull_mesh_frame).
+    "hull_at_centres": True,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }

@@ -45,7 +45,7 @@ import numpy as np
 import pandas as pd
 
 from surfphase.cameras import Camera
-from surfphase.folders.fit import SURFELS, read_fit_surfels
+from surfphase.folders.fit import BUBBLES, SURFELS, read_fit_bubbles, read_fit_surfels
 from surfphase.folders.ingest import read_ingest
 from surfphase.folders.masks import labels_path, read_masks
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text, part_dir, replace_dir
@@ -120,6 +120,7 @@ class _Session:
     key: str
     picks: list[int]  # positions (0-based) in surfels.npz to mesh, in order
     masks: list[np.ndarray] | None = None  # per input camera, (T, H, W) labels (carve_px)
+    centres: dict[int, dict[int, np.ndarray]] | None = None  # frame → bubble → (3,) m
 
 
 def _open_session(
@@ -162,10 +163,26 @@ def _open_session(
         labels = read_masks(masks_dir, inputs, session, min_frames=n_frames).labels
         masks = list(labels.values())
         mask_paths = [labels_path(masks_dir, n) for n in labels]
+    centres, hashed = None, list(mask_paths)  # the carve depends on the masks' content too
+    if p["surface"] == "hull" and p["hull_at_centres"] and (fit_dir / BUBBLES).is_file():
+        centres = bubble_centres(read_fit_bubbles(fit_dir, f"session {session}"))
+        hashed.append(fit_dir / BUBBLES)
     key = mesh_key(surfels_path, cam_path, p, dev)
-    if mask_paths:  # the carve depends on the masks' content too
-        key = hashlib.sha256("".join([key, *map(_file_hash, mask_paths)]).encode()).hexdigest()
-    return _Session(surfels, inputs, session, p, dev, key, picks, masks)
+    if hashed:
+        key = hashlib.sha256("".join([key, *map(_file_hash, hashed)]).encode()).hexdigest()
+    return _Session(surfels, inputs, session, p, dev, key, picks, masks, centres)
+
+
+def bubble_centres(table: pd.DataFrame) -> dict[int, dict[int, np.ndarray]]:
+    """``{frame: {bubble: (3,) centre m}}`` of a fit's ``bubbles.csv`` rows with ids ≥ 1
+    and a finite centre."""
+    out: dict[int, dict[int, np.ndarray]] = {}
+    rows = table[table["bubble"] >= 1]
+    xyz = rows[["x", "y", "z"]].to_numpy(np.float64)
+    for f, b, c in zip(rows["frame"].to_numpy(), rows["bubble"].to_numpy(), xyz, strict=True):
+        if np.isfinite(c).all():
+            out.setdefault(int(f), {})[int(b)] = c
+    return out
 
 
 def _frame_file(work: Path, frame: int) -> Path:
@@ -232,6 +249,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
                 [np.asarray(m[t]) for m in s.masks],
                 s.p,
                 surfel_spheres(surf["means"][t][a], sb),
+                None if s.centres is None else s.centres.get(int(surf["frame"][t])),
             )
             vel = bubble_vertex_velocities(
                 verts, vbub, surf["means"][t][a], sb, surf["velocity"][t][a]

@@ -94,6 +94,7 @@ def hull_mesh_frame(
     labels: list[np.ndarray],
     p: dict,
     hints: dict[int, tuple[np.ndarray, float]] | None = None,
+    centres: dict[int, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mesh of one frame's bubbles as their elliptic hulls (``mesh: surface: hull``).
 
@@ -103,7 +104,12 @@ def hull_mesh_frame(
     id 0, can hold different pieces in each view) once per pair of pieces the two views
     agree on (:func:`surfphase.mesh.hull.bubble_pieces`). Where the silhouettes'
     centroids triangulate to no point both views see, ``hints`` (id → (3,) centre m,
-    radius m; e.g. from the fit's surfels) place the search instead. Returns (V, 3) vertices (m), (F, 3) faces and (V,) each
+    radius m; e.g. from the fit's surfels) place the search instead. A bubble (id ≥ 1)
+    with a ``centres`` entry (id → (3,) m: its reported centre, the triangulated
+    sub-pixel silhouette centres smoothed along its track) has its hull moved, before
+    the cut at the plate, so that the centroid of its inside voxels is there: the
+    hull's own centre comes from voxel-quantised strips, whose error two views at a
+    small angle multiply in depth. Returns (V, 3) vertices (m), (F, 3) faces and (V,) each
     vertex's bubble id.
     """
     views = [c.undistorted() for c in inputs]
@@ -122,6 +128,9 @@ def hull_mesh_frame(
         if vol is None:
             continue
         sdf, origin, voxel = vol
+        if centres and b >= 1 and b in centres and (sdf < 0).any():
+            inside = np.argwhere(sdf < 0).mean(axis=0)
+            origin = np.asarray(centres[b], np.float64) - voxel * inside
         if p["floor_y"] is not None:
             trunc = float(p["trunc_voxels"]) * voxel
             sdf = cut_below(sdf, origin, voxel, float(p["floor_y"]), trunc)
