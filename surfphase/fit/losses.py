@@ -72,13 +72,34 @@ def ssim(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
 
 
 def photometric_terms(
-    rendered: torch.Tensor, observed: torch.Tensor, lambda_dssim: float = 0.2
+    rendered: torch.Tensor,
+    observed: torch.Tensor,
+    lambda_dssim: float = 0.2,
+    backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-view photometric terms of (C, H, W, D) images, for weighted sums over views.
 
     Returns ``(loss_v, l1_v, dssim_v)``, each (C,): ``(1−λ)·L1 + λ·(1 − SSIM)`` of every
-    view, and its two parts (L1 the mean absolute error, D-SSIM ``1 −`` the mean SSIM).
+    view, and its two parts (L1 the mean absolute error, D-SSIM ``1 −`` the mean SSIM of
+    :func:`ssim_map`).
+
+    ``backend``: ``"torch"`` (these PyTorch ops), ``"fused"`` (the numba kernels of
+    :func:`surfphase.fit.fused_losses.photometric_fused`: the same values to rounding,
+    float64 inside, gradient to ``rendered`` only) or ``"auto"`` (default: ``"fused"``
+    on the CPU when ``observed`` needs no gradient, as the rasterizer picks its fused
+    backend on the CPU; ``"torch"`` otherwise, e.g. on CUDA).
     """
+    if backend == "auto":
+        cpu = rendered.device.type == "cpu" and observed.device.type == "cpu"
+        backend = "fused" if cpu and not observed.requires_grad else "torch"
+    if backend == "fused":
+        from surfphase.fit.fused_losses import photometric_fused
+
+        return photometric_fused(rendered, observed, lambda_dssim)
+    if backend != "torch":
+        raise ValueError(
+            f"photometric_terms: unknown backend {backend!r}; known: auto, fused, torch"
+        )
     l1_v = (rendered - observed).abs().flatten(1).mean(dim=1)
     dssim_v = 1.0 - ssim_map(rendered, observed).flatten(1).mean(dim=1)
     return (1 - lambda_dssim) * l1_v + lambda_dssim * dssim_v, l1_v, dssim_v
