@@ -120,3 +120,86 @@ def test_auto_backend_and_refusals():
         photometric_fused(x, y.detach()[:, :4])
     with pytest.raises(ValueError, match="unknown backend"):
         losses.photometric_terms(x, y, backend="gpu")
+
+
+def _normal_maps(shape, seed, dtype=torch.float64):
+    g = torch.Generator().manual_seed(seed)
+    n = torch.nn.functional.normalize(torch.randn(*shape, 3, generator=g, dtype=dtype), dim=-1)
+    nd = torch.nn.functional.normalize(torch.randn(*shape, 3, generator=g, dtype=dtype), dim=-1)
+    alpha = torch.rand(*shape, 1, generator=g, dtype=dtype)
+    return n.requires_grad_(), nd.requires_grad_(), alpha
+
+
+@pytest.mark.parametrize("with_alpha", [True, False])
+def test_fused_normal_consistency_matches_torch(with_alpha):
+    n, nd, alpha = _normal_maps((2, 11, 9), seed=4)
+    a = alpha if with_alpha else None
+    fused = losses.normal_consistency(n, nd, a, backend="fused")
+    ref = losses.normal_consistency(n, nd, a, backend="torch")
+    assert abs(float(fused.detach()) - float(ref.detach())) < 1e-12
+    for ga, gb in zip(
+        torch.autograd.grad(fused, (n, nd)), torch.autograd.grad(ref, (n, nd)), strict=True
+    ):
+        np.testing.assert_allclose(ga.numpy(), gb.numpy(), rtol=0, atol=1e-14)
+    f32 = [t.detach().float().requires_grad_() for t in (n, nd)]
+    v32 = losses.normal_consistency(*f32, None if a is None else a.float(), backend="fused")
+    assert v32.dtype == torch.float32 and abs(float(v32.detach()) - float(ref.detach())) < 1e-6
+    assert torch.autograd.gradcheck(
+        lambda p, q: losses.normal_consistency(p, q, a, backend="fused"), (n, nd)
+    )
+
+
+def _projection_scene(dtype=torch.float64):
+    """Two views of points around the origin over a rendered depth ~0.1 m, with an empty
+    band (depth 0), points outside the images and points beyond the threshold."""
+    from surfphase.cameras import look_at
+    from surfphase.render import camera_tensors
+
+    cams = [
+        look_at("a", [0, 0, 0.1], [0, 0, 0], fx=200.0, width=40, height=30),
+        look_at("b", [0.1, 0, 0.01], [0, 0, 0], fx=180.0, width=40, height=30),
+    ]
+    viewmats, Ks = camera_tensors(cams, "cpu", dtype)
+    g = torch.Generator().manual_seed(6)
+    pts = 0.012 * torch.randn(400, 3, generator=g, dtype=dtype)
+    depth = 0.1 + 0.003 * torch.rand(2, 30, 40, 1, generator=g, dtype=dtype)
+    depth[:, :6] = 0.0
+    return pts.requires_grad_(), depth, viewmats, Ks
+
+
+def test_fused_projection_loss_matches_torch():
+    pts, depth, viewmats, Ks = _projection_scene()
+    kept = []
+    for thr in (0.1, 0.02):
+        fused = losses.projection_loss(pts, depth, viewmats, Ks, 0.02, thr, backend="fused")
+        ref = losses.projection_loss(pts, depth, viewmats, Ks, 0.02, thr, backend="torch")
+        assert abs(float(fused.detach()) - float(ref.detach())) < 1e-12 and float(ref.detach()) > 0
+        (ga,) = torch.autograd.grad(fused, pts)
+        (gb,) = torch.autograd.grad(ref, pts)
+        np.testing.assert_allclose(ga.numpy(), gb.numpy(), rtol=0, atol=1e-12)
+        kept.append(int((gb != 0).any(dim=1).sum()))
+        assert int((gb == 0).all(dim=1).sum()) > 20  # points not kept in either view
+    assert kept[0] > 20 and 0 < kept[1] < kept[0]
+    # Nothing kept: 0, with a zero gradient.
+    none = losses.projection_loss(pts, depth * 0, viewmats, Ks, 0.02, 0.1, backend="fused")
+    (g0,) = torch.autograd.grad(none, pts)
+    assert float(none) == 0.0 and not g0.any()
+    with pytest.raises(ValueError, match="viewmats or Ks"):
+        losses.projection_loss(
+            pts, depth, viewmats.clone().requires_grad_(), Ks, 0.02, backend="fused"
+        )
+
+
+def test_fused_geometry_losses_same_bits_for_one_and_two_threads():
+    n, nd, alpha = _normal_maps((2, 33, 21), seed=8, dtype=torch.float32)
+    threads = torch.get_num_threads()
+    runs = []
+    try:
+        for k in (1, 2):
+            torch.set_num_threads(k)
+            v = losses.normal_consistency(n, nd, alpha, backend="fused")
+            runs.append([v, *torch.autograd.grad(v, (n, nd))])
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(*runs, strict=True):
+        assert torch.equal(a, b)

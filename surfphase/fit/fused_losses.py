@@ -269,9 +269,220 @@ def _backward(x, y, g, d_mu, d_xx, d_xy, a_l1, a_s, n_threads, gx):
                 gx[p, i, j] = als * (o0[j] + 2 * a * o1[j] + b * o2[j]) + al1 * sg
 
 
+# -- geometry losses -----------------------------------------------------------------------
+def normal_consistency_fused(
+    normals: Tensor, normals_from_depth: Tensor, alphas: Tensor | None = None
+) -> Tensor:
+    """:func:`surfphase.fit.losses.normal_consistency` on the CPU: ``mean(1 − n·(α ñ))``
+    over the (C, H, W) pixels, ``α`` detached; gradients to both normal maps.
+
+    Row-parallel, each row's sum in its own slot, the rows summed in order in one thread
+    (bit-for-bit for any thread count); float64 sums, the inputs' dtype out.
+    """
+    if normals.shape != normals_from_depth.shape or normals.shape[-1:] != (3,):
+        raise ValueError(
+            f"normal_consistency_fused: need two (C, H, W, 3) normal maps of one shape, got "
+            f"{tuple(normals.shape)} and {tuple(normals_from_depth.shape)}"
+        )
+    if alphas is not None and alphas.shape != (*normals.shape[:-1], 1):
+        raise ValueError(
+            f"normal_consistency_fused: alphas must be (C, H, W, 1), got {tuple(alphas.shape)}"
+        )
+    return _NormalConsistency.apply(normals, normals_from_depth, alphas)
+
+
+def _array(t: Tensor) -> np.ndarray:
+    """A detached C-contiguous numpy view (or copy) of a CPU tensor, in its dtype."""
+    return t.detach().contiguous().numpy()
+
+
+class _NormalConsistency(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, normals: Tensor, nd: Tensor, alphas: Tensor | None):
+        from surfphase.render.fused import _threads
+
+        dt = normals.dtype
+        n, m = _array(normals), _array(nd.to(dt))
+        a = np.ones((1, 1, 1, 1), n.dtype) if alphas is None else _array(alphas.to(dt))
+        C, H, W, _ = n.shape
+        rows = np.empty(C * H)
+        _normal_rows(n, m, a, alphas is not None, _threads(), rows)
+        ctx.saved = (n, m, a, alphas is not None)
+        return torch.tensor(1.0 - rows.sum() / max(C * H * W, 1), dtype=dt)
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        from surfphase.render.fused import _threads
+
+        n, m, a, has_a = ctx.saved
+        C, H, W, _ = n.shape
+        scale = -float(g) / max(C * H * W, 1)
+        g_n = np.empty_like(n)
+        g_m = np.empty_like(m)
+        _normal_grads(n, m, a, has_a, scale, _threads(), g_n, g_m)
+        return torch.from_numpy(g_n), torch.from_numpy(g_m), None
+
+
+@njit(**_KW, parallel=True)
+def _normal_rows(n, m, a, has_a, n_threads, rows):
+    """``rows[c·H + y] = Σ_x n·(α ñ)`` (float64)."""
+    C, H, W, _ = n.shape
+    for th in prange(n_threads):
+        for r in range(th, C * H, n_threads):
+            c = r // H
+            y = r % H
+            acc = 0.0
+            for x in range(W):
+                al = np.float64(a[c, y, x, 0]) if has_a else 1.0
+                acc += (
+                    np.float64(n[c, y, x, 0]) * (np.float64(m[c, y, x, 0]) * al)
+                    + np.float64(n[c, y, x, 1]) * (np.float64(m[c, y, x, 1]) * al)
+                    + np.float64(n[c, y, x, 2]) * (np.float64(m[c, y, x, 2]) * al)
+                )
+            rows[r] = acc
+
+
+@njit(**_KW, parallel=True)
+def _normal_grads(n, m, a, has_a, scale, n_threads, g_n, g_m):
+    """``g_n = scale·α ñ``, ``g_m = scale·α n`` (``scale = −g / (C·H·W)``)."""
+    C, H, W, _ = n.shape
+    for th in prange(n_threads):
+        for r in range(th, C * H, n_threads):
+            c = r // H
+            y = r % H
+            for x in range(W):
+                sa = scale * (np.float64(a[c, y, x, 0]) if has_a else 1.0)
+                for i in range(3):
+                    g_n[c, y, x, i] = sa * np.float64(m[c, y, x, i])
+                    g_m[c, y, x, i] = sa * np.float64(n[c, y, x, i])
+
+
+def projection_loss_fused(
+    points: Tensor,
+    depth: Tensor,
+    viewmats: Tensor,
+    Ks: Tensor,
+    extent: float,
+    threshold: float = 0.1,
+) -> Tensor:
+    """:func:`surfphase.fit.losses.projection_loss` on the CPU (same arguments and rule):
+    each (view, point) in one numba loop, float64 inside, the depth sampled bilinearly
+    with zero padding as ``grid_sample(align_corners=True)`` does; the gradient to
+    ``points`` only (through their camera depth), none to the cameras or the depth."""
+    if viewmats.requires_grad or Ks.requires_grad:
+        raise ValueError(
+            "projection_loss_fused: computes no gradient to viewmats or Ks; use "
+            "backend='torch' (backend='auto' does so when the cameras require grad)"
+        )
+    if points.dim() != 2 or points.shape[1] != 3 or depth.dim() != 4 or depth.shape[-1] != 1:
+        raise ValueError(
+            f"projection_loss_fused: need points (N, 3) and depth (C, H, W, 1), got "
+            f"{tuple(points.shape)} and {tuple(depth.shape)}"
+        )
+    return _Projection.apply(points, depth, viewmats, Ks, float(extent), float(threshold))
+
+
+class _Projection(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, points, depth, viewmats, Ks, extent, threshold):
+        p = _planes_f64(points)
+        d = _planes_f64(depth[..., 0])
+        V = _planes_f64(viewmats)
+        K = _planes_f64(Ks)
+        C, N = V.shape[0], p.shape[0]
+        sgn = np.zeros((C, N))
+        err_sum = np.zeros(1)
+        n_keep = _projection(p, d, V, K, extent, threshold, sgn, err_sum)
+        ctx.saved = (sgn, V, n_keep, extent, points.dtype)
+        if n_keep == 0:
+            return torch.zeros((), dtype=points.dtype)
+        return torch.tensor(err_sum[0] / n_keep, dtype=points.dtype)
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        sgn, V, n_keep, extent, dtype = ctx.saved
+        g_p = np.zeros((sgn.shape[1], 3))
+        if n_keep:
+            _projection_grad(sgn, V, float(g) / (n_keep * extent), g_p)
+        return torch.from_numpy(g_p).to(dtype), None, None, None, None, None
+
+
+def _planes_f64(t: Tensor) -> np.ndarray:
+    """A detached float64 C-contiguous numpy copy (or view) of a CPU tensor."""
+    return np.ascontiguousarray(t.detach().to(torch.float64).numpy())
+
+
+@njit(**_KW)
+def _projection(p, d, V, K, extent, threshold, sgn, err_sum):
+    """Per view c, point n: camera depth z, pixel (u, v), bilinear depth D(u, v); where
+    kept (inside, D > 0, e = |z − D|/L ≤ threshold) ``sgn[c, n] = sign(z − D)`` and
+    ``e`` adds to ``err_sum``, in (view, point) order. Returns the number kept."""
+    C, H, W = d.shape
+    N = p.shape[0]
+    kept = 0
+    total = 0.0
+    for c in range(C):
+        for n in range(N):
+            x0, x1, x2 = p[n, 0], p[n, 1], p[n, 2]
+            px = V[c, 0, 0] * x0 + V[c, 0, 1] * x1 + V[c, 0, 2] * x2 + V[c, 0, 3]
+            py = V[c, 1, 0] * x0 + V[c, 1, 1] * x1 + V[c, 1, 2] * x2 + V[c, 1, 3]
+            z = V[c, 2, 0] * x0 + V[c, 2, 1] * x1 + V[c, 2, 2] * x2 + V[c, 2, 3]
+            zs = max(z, 1e-9)
+            u = K[c, 0, 0] * px / zs + K[c, 0, 2]
+            v = K[c, 1, 1] * py / zs + K[c, 1, 2]
+            if not (u >= 0 and u <= W - 1 and v >= 0 and v <= H - 1 and z > 0):
+                continue
+            # grid_sample(align_corners=True) with one-pixel images samples pixel 0.
+            ix = u if W > 1 else 0.0
+            iy = v if H > 1 else 0.0
+            xa = int(np.floor(ix))
+            ya = int(np.floor(iy))
+            wx = ix - xa
+            wy = iy - ya
+            dv = 0.0
+            for yy, wyy in ((ya, 1.0 - wy), (ya + 1, wy)):
+                if yy < 0 or yy >= H:
+                    continue
+                for xx, wxx in ((xa, 1.0 - wx), (xa + 1, wx)):
+                    if xx < 0 or xx >= W:
+                        continue
+                    dv += wyy * wxx * d[c, yy, xx]
+            e = abs(z - dv) / extent
+            if not (dv > 0 and e <= threshold):
+                continue
+            kept += 1
+            total += e
+            sgn[c, n] = 1.0 if z > dv else (-1.0 if z < dv else 0.0)
+    err_sum[0] = total
+    return kept
+
+
+@njit(**_KW)
+def _projection_grad(sgn, V, scale, g_p):
+    """``g_p[n] = scale · Σ_c sgn[c, n]·R_c[2, :]`` (∂z/∂p), views in order."""
+    C, N = sgn.shape
+    for n in range(N):
+        for c in range(C):
+            s = sgn[c, n]
+            if s != 0.0:
+                for i in range(3):
+                    g_p[n, i] += scale * s * V[c, 2, i]
+
+
 def compile_kernels() -> None:
-    """Compile (or load from numba's cache) both kernels: one tiny forward and backward."""
+    """Compile (or load from numba's cache) every kernel: one tiny forward and backward
+    of each loss (the normal consistency for float32 and float64 maps)."""
     g = torch.Generator().manual_seed(0)
     x = torch.rand(1, 12, 13, 1, generator=g, dtype=torch.float64, requires_grad=True)
     y = torch.rand(1, 12, 13, 1, generator=g, dtype=torch.float64)
     photometric_fused(x, y)[0].sum().backward()
+    cam = torch.eye(4, dtype=torch.float64)[None]
+    cam[0, 2, 3] = 1.0
+    K = torch.tensor([[[10.0, 0.0, 6.0], [0.0, 10.0, 5.5], [0.0, 0.0, 1.0]]], dtype=torch.float64)
+    pts = (0.1 * torch.rand(5, 3, generator=g, dtype=torch.float64)).requires_grad_()
+    projection_loss_fused(pts, 1 + x.detach(), cam, K, 1.0, 1.0).backward()
+    for dt in (torch.float32, torch.float64):
+        n = torch.rand(1, 3, 4, 3, generator=g, dtype=dt, requires_grad=True)
+        a = torch.rand(1, 3, 4, 1, generator=g, dtype=dt)
+        normal_consistency_fused(n, n.detach() + 1, a).backward()
+        normal_consistency_fused(n, n.detach() + 1).backward()
