@@ -1,6 +1,9 @@
-"""Fused CPU form of the fit's photometric term (numba), :func:`photometric_fused`.
+"""Fused CPU forms of the fit's losses (numba, hand-written backward passes): the
+photometric term (:func:`photometric_fused`), the normal consistency
+(:func:`normal_consistency_fused`) and the projection loss (:func:`projection_loss_fused`),
+which :mod:`surfphase.fit.losses` takes on the CPU (``backend="auto"``).
 
-Per view of two (K, H, W, D) images: ``L1`` (the mean of ``|x − y|``), ``D-SSIM`` (``1 −``
+The photometric term, per view of two (K, H, W, D) images: ``L1`` (the mean of ``|x − y|``), ``D-SSIM`` (``1 −``
 the mean of :func:`surfphase.fit.losses.ssim_map`: an 11-tap Gaussian window, σ = 1.5,
 zero padding, ``K1 = 0.01``, ``K2 = 0.03``) and ``(1−λ)·L1 + λ·D-SSIM``, the values
 :func:`surfphase.fit.losses.photometric_terms` gives with ``backend="torch"``, with a
@@ -17,9 +20,13 @@ bit. From them each pixel's SSIM ``s`` and its partial derivatives ``∂s/∂μx
 partial-derivative maps (the zero-padded Gaussian window is its own adjoint: it is
 symmetric) and adds ``sign(x − y)`` (0 at 0, as PyTorch's ``abs``) for the L1.
 
-No two threads write the same number and the per-view sums add the row slots in row
-order in one thread, so the results are bit-for-bit identical for any thread count.
-Everything inside is float64; outputs are in the input's dtype. The kernels compile on
+The normal consistency runs over rows the same way (row sums in their own slots); the
+projection loss is one serial loop over (view, point) pairs (a few thousand).
+
+No two threads write the same number and every sum adds its terms in a fixed order in
+one thread, so the results are bit-for-bit identical for any thread count. The sums are
+float64 (the photometric term and the projection loss are float64 throughout); outputs
+are in the input's dtype. The kernels compile on
 first use and are cached on disk (:func:`compile_kernels`, which
 :func:`surfphase.render.fused.compile_kernels` calls).
 """
