@@ -33,6 +33,8 @@ first use and are cached on disk (:func:`compile_kernels`, which
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 from numba import njit, prange
@@ -46,12 +48,16 @@ K1, K2 = 0.01, 0.03
 _KW = dict(cache=True, error_model="numpy")
 
 
+@functools.cache
 def _taps(window: int, sigma: float) -> np.ndarray:
-    """The window's taps (float64), computed as :func:`surfphase.fit.losses.ssim_map`
-    computes them for float64 images, so that both use the same numbers."""
+    """The window's taps (float64, read-only), computed as
+    :func:`surfphase.fit.losses.ssim_map` computes them for float64 images, so that both
+    use the same numbers."""
     from surfphase.fit.losses import _gaussian_window
 
-    return _gaussian_window(window, sigma, torch.float64, "cpu").numpy().copy()
+    g = _gaussian_window(window, sigma, torch.float64, "cpu").numpy().copy()
+    g.flags.writeable = False
+    return g
 
 
 def _planes(t: Tensor) -> np.ndarray:
