@@ -68,10 +68,11 @@ def test_photometric_loss_is_sum_over_views_of_l1_dssim_mix():
 
 
 def test_photometric_loss_is_the_sum_of_the_terms_bit_for_bit():
+    """The PyTorch backend (the reference of the fused one, tests/test_fit_losses_fused.py)."""
     g = torch.Generator().manual_seed(1)
     x = torch.rand(3, 20, 18, 2, generator=g).requires_grad_()
     y = torch.rand(3, 20, 18, 2, generator=g)
-    loss = losses.photometric_terms(x, y, 0.3)[0].sum()
+    loss = losses.photometric_terms(x, y, 0.3, backend="torch")[0].sum()
     (gx,) = torch.autograd.grad(loss, x)
     # The formula written out, as the loss of the views summed.
     l1_v = (x - y).abs().flatten(1).mean(dim=1)
@@ -79,7 +80,7 @@ def test_photometric_loss_is_the_sum_of_the_terms_bit_for_bit():
     ref = ((1 - 0.3) * l1_v + 0.3 * dssim_v).sum()
     (gref,) = torch.autograd.grad(ref, x)
     assert torch.equal(loss, ref) and torch.equal(gx, gref)
-    loss_v, l1_t, ds_t = losses.photometric_terms(x, y, 0.3)
+    loss_v, l1_t, ds_t = losses.photometric_terms(x, y, 0.3, backend="torch")
     assert (
         torch.equal(loss_v.sum(), loss) and torch.equal(l1_t, l1_v) and torch.equal(ds_t, dssim_v)
     )

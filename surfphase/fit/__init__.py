@@ -32,6 +32,9 @@ The pieces under them:
   :func:`~surfphase.fit.model.sdf_to_opacity` (``o = 4e^{−γf}/(1+e^{−γf})²``);
 * :mod:`surfphase.fit.losses` — L1, SSIM/D-SSIM, normal consistency, the ``L_γ`` hinge,
   the projection loss;
+* :mod:`surfphase.fit.fused_losses` — the photometric term (L1 + D-SSIM per view), the
+  normal consistency and the projection loss as numba kernels with hand-written
+  backward passes, used on the CPU;
 * :mod:`surfphase.fit.densify` — densification strategies, one
   :class:`~surfphase.fit.densify.Strategy` interface
   (:class:`~surfphase.fit.densify.Densify2DGS`, :class:`~surfphase.fit.densify.NoDensify`);

@@ -2,6 +2,12 @@
 
 ``λ_app · Σ_c (L1 + D-SSIM) + λ_geo · (L_normal + L_γ + L_proj)``. Images are
 (C, H, W, D) tensors in [0, 1]; depths in metres.
+
+The photometric term, the normal consistency and the projection loss take a ``backend``:
+these PyTorch ops (``"torch"``, the reference, and the CUDA path) or the numba kernels of
+:mod:`surfphase.fit.fused_losses` with hand-written gradients (``"fused"``, float64
+inside, the same values to rounding); ``"auto"`` (default) takes the kernels on the CPU,
+as :func:`surfphase.render.rasterize_surfels` takes its fused backend there.
 """
 
 from __future__ import annotations
@@ -71,21 +77,49 @@ def ssim(img1: torch.Tensor, img2: torch.Tensor) -> torch.Tensor:
     return ssim_map(img1, img2).mean()
 
 
+def _backend(backend: str, name: str, fused_ok: bool) -> str:
+    """``backend`` resolved: ``"auto"`` → ``"fused"`` where ``fused_ok`` (CPU tensors, no
+    gradient the kernels do not compute), else ``"torch"``."""
+    if backend == "auto":
+        return "fused" if fused_ok else "torch"
+    if backend not in ("fused", "torch"):
+        raise ValueError(f"{name}: unknown backend {backend!r}; known: auto, fused, torch")
+    return backend
+
+
 def photometric_terms(
-    rendered: torch.Tensor, observed: torch.Tensor, lambda_dssim: float = 0.2
+    rendered: torch.Tensor,
+    observed: torch.Tensor,
+    lambda_dssim: float = 0.2,
+    backend: str = "auto",
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-view photometric terms of (C, H, W, D) images, for weighted sums over views.
 
     Returns ``(loss_v, l1_v, dssim_v)``, each (C,): ``(1−λ)·L1 + λ·(1 − SSIM)`` of every
-    view, and its two parts (L1 the mean absolute error, D-SSIM ``1 −`` the mean SSIM).
+    view, and its two parts (L1 the mean absolute error, D-SSIM ``1 −`` the mean SSIM of
+    :func:`ssim_map`).
+
+    ``backend``: ``"torch"`` (these PyTorch ops), ``"fused"`` (the numba kernels of
+    :func:`surfphase.fit.fused_losses.photometric_fused`: the same values to rounding,
+    float64 inside, gradient to ``rendered`` only) or ``"auto"`` (default: ``"fused"``
+    on the CPU when ``observed`` needs no gradient, as the rasterizer picks its fused
+    backend on the CPU; ``"torch"`` otherwise, e.g. on CUDA).
     """
+    cpu = rendered.device.type == "cpu" and observed.device.type == "cpu"
+    if _backend(backend, "photometric_terms", cpu and not observed.requires_grad) == "fused":
+        from surfphase.fit.fused_losses import photometric_fused
+
+        return photometric_fused(rendered, observed, lambda_dssim)
     l1_v = (rendered - observed).abs().flatten(1).mean(dim=1)
     dssim_v = 1.0 - ssim_map(rendered, observed).flatten(1).mean(dim=1)
     return (1 - lambda_dssim) * l1_v + lambda_dssim * dssim_v, l1_v, dssim_v
 
 
 def normal_consistency(
-    normals: torch.Tensor, normals_from_depth: torch.Tensor, alphas: torch.Tensor | None = None
+    normals: torch.Tensor,
+    normals_from_depth: torch.Tensor,
+    alphas: torch.Tensor | None = None,
+    backend: str = "auto",
 ) -> torch.Tensor:
     """2DGS's normal loss: mean over pixels of ``1 − n·ñ``.
 
@@ -94,8 +128,15 @@ def normal_consistency(
         normals_from_depth: (C, H, W, 3) normals of the rendered depth (camera frame);
             following 2DGS they are scaled by the pixel's alpha when ``alphas`` is given,
             so empty pixels contribute nothing.
-        alphas: optional (C, H, W, 1) accumulated opacity.
+        alphas: optional (C, H, W, 1) accumulated opacity (no gradient flows to it).
+        backend: ``"torch"``, ``"fused"``
+            (:func:`surfphase.fit.fused_losses.normal_consistency_fused`, the same value to
+            rounding) or ``"auto"`` (``"fused"`` on the CPU, as :func:`photometric_terms`).
     """
+    if _backend(backend, "normal_consistency", normals.device.type == "cpu") == "fused":
+        from surfphase.fit.fused_losses import normal_consistency_fused
+
+        return normal_consistency_fused(normals, normals_from_depth, alphas)
     nd = normals_from_depth
     if alphas is not None:
         nd = nd * alphas.detach()
@@ -124,6 +165,7 @@ def projection_loss(
     Ks: torch.Tensor,
     extent: float,
     threshold: float = 0.1,
+    backend: str = "auto",
 ) -> torch.Tensor:
     """Depth of each surfel's zero-level point against the rendered depth (detached).
 
@@ -140,10 +182,19 @@ def projection_loss(
         Ks: (C, 3, 3) intrinsics, pixels.
         extent: scene extent ``L``, metres.
         threshold: largest error kept, in units of ``L``.
+        backend: ``"torch"``, ``"fused"``
+            (:func:`surfphase.fit.fused_losses.projection_loss_fused`, the same value to
+            rounding, no gradient to the cameras) or ``"auto"`` (``"fused"`` on the CPU
+            when the cameras need no gradient).
 
     Returns:
         Scalar mean error (extent units) over kept (point, view) pairs; 0 if none.
     """
+    cpu = points.device.type == "cpu" and not (viewmats.requires_grad or Ks.requires_grad)
+    if _backend(backend, "projection_loss", cpu) == "fused":
+        from surfphase.fit.fused_losses import projection_loss_fused
+
+        return projection_loss_fused(points, depth, viewmats, Ks, extent, threshold)
     C, H, W, _ = depth.shape
     R = viewmats[:, :3, :3]
     t = viewmats[:, :3, 3]

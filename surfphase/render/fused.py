@@ -1468,9 +1468,11 @@ def _depth_normals_backward(d, rays, eps, g, g_dy, g_dx, g_d):
 def compile_kernels() -> None:
     """Compile every kernel of this backend, or load them from numba's on-disk cache:
     one small render forward and backward for float32 and for float64 inputs (about
-    30 s once, under a second when cached). ``make test`` and ``make demo`` call it
-    first, so that the test workers and the workflow's parallel jobs load the cache
-    instead of each compiling the same kernels side by side."""
+    30 s once, under a second when cached), then the fit's fused photometric loss
+    (:func:`surfphase.fit.fused_losses.compile_kernels`). ``make test`` and ``make demo``
+    call it first, so that the test workers and the workflow's parallel jobs load the
+    cache instead of each compiling the same kernels side by side."""
+    from surfphase.fit import fused_losses
     from surfphase.render.rasterize import rasterize_surfels
     from surfphase.render.scenes import sphere_scene
 
@@ -1484,3 +1486,4 @@ def compile_kernels() -> None:
             loss = loss + meta[k].sum()
         loss = loss + meta["distortion"].sum()
         loss.backward()
+    fused_losses.compile_kernels()
