@@ -187,6 +187,24 @@ def test_hull_meshes_are_the_bubbles_each_on_its_own_grid(focal, ratio_tol):
         assert abs(ratio - 1) < ratio_tol, ratio
 
 
+def test_nucleation_frames_need_a_piece_both_views_agree_on():
+    """A frame whose nucleation region (id 0) is an attached sphere both views see is a
+    nucleation frame; one where each view shows only a speck of its own (that
+    triangulate to nothing) is not, with the cameras, and is without them."""
+    from surfphase.fit.outputs import nucleation_frames
+
+    cams = _rig()
+    sphere = {0: (CENTRE + [0.5e-3, 0, 0], 0.7e-3)}
+    seen = [_sphere_labels(c, sphere) for c in cams]
+    specks = [np.full((c.height, c.width), -1, np.int32) for c in cams]
+    specks[0][200:210, 10:20] = 0
+    specks[1][20:26, 200:206] = 0
+    stacks = [np.stack([a, b]) for a, b in zip(seen, specks, strict=True)]
+    frames = np.array([7, 8])
+    assert nucleation_frames(stacks, frames, cams) == {7}
+    assert nucleation_frames(stacks, frames) == {7, 8}
+
+
 def test_hull_is_moved_to_the_reported_centre():
     """With ``centres`` a bubble's hull is moved so that its volume centroid is there
     (within 2 % of r: voxel against mesh centroid), its shape (volume) unchanged; a

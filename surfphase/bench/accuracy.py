@@ -100,9 +100,10 @@ def method_track_table(
     anchors = read_anchors(masks, ingest.session)
     if anchors is None:
         return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order, ends)
-    labels = list(read_masks(masks, ingest.input_cameras(), ingest.session).labels.values())
+    cams = ingest.input_cameras()
+    labels = list(read_masks(masks, cams, ingest.session).labels.values())
     frames = np.asarray(arrays["frame"], dtype=np.int64)
-    nuc = nucleation_frames(labels, frames)
+    nuc = nucleation_frames(labels, frames, cams)
     table = bubble_table(arrays, arrays["time_s"], frames)
     if min_track_frames is None:
         min_track_frames = int(DEFAULTS["min_track_frames"])

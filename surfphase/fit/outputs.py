@@ -242,15 +242,29 @@ def bubble_table(
     return table
 
 
-def nucleation_frames(label_stacks: Sequence[np.ndarray], frames: np.ndarray) -> set[int]:
+def nucleation_frames(
+    label_stacks: Sequence[np.ndarray],
+    frames: np.ndarray,
+    cameras: Sequence[Camera] | None = None,
+) -> set[int]:
     """Session frame indices (``frames``, one per stack position) where every view's
     (T, H, W) label stack shows the nucleation region (id 0): as for a bubble, both
-    views must see it (one view alone sees fragments on the plate's edge too)."""
-    return {
-        int(f)
-        for t, f in enumerate(frames)
-        if all(bool((np.asarray(lab[t]) == 0).any()) for lab in label_stacks)
-    }
+    views must see it (one view alone sees fragments on the plate's edge too). With the
+    views' ``cameras``, the first two views must also agree on at least one piece of it
+    (:func:`surfphase.masks.anchors.agreeing_pieces`: a bubble attached to the plate
+    seen by both), not only show some fragment each."""
+    from surfphase.masks.anchors import NUCLEATION_ID, agreeing_pieces
+
+    views = None if cameras is None else [c.undistorted() for c in list(cameras)[:2]]
+    out = set()
+    for t, f in enumerate(frames):
+        labs = [np.asarray(lab[t]) for lab in label_stacks]
+        if not all(bool((lab == NUCLEATION_ID).any()) for lab in labs):
+            continue
+        if views is not None and not agreeing_pieces(views, labs[0], labs[1], NUCLEATION_ID):
+            continue
+        out.add(int(f))
+    return out
 
 
 def anchored_table(

@@ -62,10 +62,13 @@ class SessionData:
         return {int(b): xyz[i] for i, b in enumerate(rows["bubble"])}
 
     def nucleation_frames(self) -> set[int]:
-        """Session frame indices where every view's masks show the nucleation region."""
+        """Session frame indices where every view's masks show the nucleation region and
+        the first two agree on a piece of it."""
         from surfphase.fit.outputs import nucleation_frames
 
-        return nucleation_frames(self.label_stacks, self.frame_indices[: self.n_frames])
+        return nucleation_frames(
+            self.label_stacks, self.frame_indices[: self.n_frames], self.cameras
+        )
 
     def fingerprint(self) -> str:
         h = hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode())

@@ -121,6 +121,76 @@ def border_ids(labels: np.ndarray, margin_px: int = 1) -> set[int]:
     return {int(b) for b in np.unique(edge[edge >= 0])}
 
 
+def silhouette_pieces(lab: np.ndarray, b: int) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """Connected pieces (8-connected) of id ``b`` in one (H, W) label image: per piece
+    its (2,) centroid (u, v) pixels, its area (pixels) and its (H, W) bool mask."""
+    from scipy import ndimage as ndi
+
+    comp, n = ndi.label(lab == b, structure=np.ones((3, 3), bool))
+    out = []
+    for k in range(1, n + 1):
+        m = comp == k
+        r, c = np.nonzero(m)
+        out.append((np.array([c.mean(), r.mean()]), float(len(r)), m))
+    return out
+
+
+def pair_sphere(cameras: Sequence[Camera], uvs: Sequence[np.ndarray], areas: Sequence[float]):
+    """Two silhouettes' centroids ``uvs`` ((2,) px each) and areas (px) triangulated:
+    (centre (3,) m, mean radius m, largest reprojection error over the view's equivalent
+    radius, ratio of the larger to the smaller radius); None where the point is behind a
+    view or not finite."""
+    X = triangulate(list(cameras[:2]), [np.asarray(u)[None] for u in uvs])[0]
+    if not np.all(np.isfinite(X)):
+        return None
+    radii, errs = [], []
+    for cam, uv, a in zip(cameras[:2], uvs, areas, strict=True):
+        z = float(cam.world_to_camera(X[None])[0, 2])
+        if z <= 0:
+            return None
+        r_px = np.sqrt(a / np.pi)
+        radii.append(r_px * z / float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])))
+        errs.append(float(np.linalg.norm(cam.project(X[None], distort=False)[0] - uv)) / r_px)
+    return X, float(np.mean(radii)), max(errs), max(radii) / max(min(radii), 1e-12)
+
+
+#: The id of the nucleation region, which holds every attached bubble.
+NUCLEATION_ID = 0
+#: Two pieces of one id (the nucleation region), one per view, are the same object
+#: when their centroids triangulate to a point that reprojects within this fraction of each
+#: piece's equivalent radius ...
+PIECE_REPROJ_R = 0.25
+#: ... and the radii the two pieces give at that point differ by at most this factor.
+PIECE_SIZE_RATIO = 1.5
+
+
+def agreeing_pieces(
+    cameras: Sequence[Camera], lab0: np.ndarray, lab1: np.ndarray, b: int
+) -> list[tuple[np.ndarray, float, np.ndarray, np.ndarray]]:
+    """The pairs of pieces of id ``b``, one from each of two views' (H, W) labels, that
+    are the same object: their centroids triangulate (undistorted ``cameras``) to a
+    point that reprojects within :data:`PIECE_REPROJ_R` of each piece's equivalent
+    radius, and the radii they give there differ by at most :data:`PIECE_SIZE_RATIO`;
+    best agreeing first, each piece in one pair. Per pair: ``(centre (3,) m, radius m,
+    mask in view 0, mask in view 1)``. The nucleation region holds every attached
+    bubble, and two views need not hold the same pieces of it (a speck on the plate's
+    edge in one view, a bubble hidden in the other)."""
+    p0, p1 = silhouette_pieces(lab0, b), silhouette_pieces(lab1, b)
+    cands = []
+    for i, (u0, a0, _) in enumerate(p0):
+        for j, (u1, a1, _) in enumerate(p1):
+            sp = pair_sphere(cameras, [u0, u1], [a0, a1])
+            if sp is not None and sp[2] <= PIECE_REPROJ_R and sp[3] <= PIECE_SIZE_RATIO:
+                cands.append((sp[2], i, j, sp))
+    used0, used1, out = set(), set(), []
+    for _, i, j, sp in sorted(cands, key=lambda x: x[:3]):
+        if i not in used0 and j not in used1:
+            used0.add(i)
+            used1.add(j)
+            out.append((sp[0], sp[1], p0[i][2], p1[j][2]))
+    return out
+
+
 def apparent_size(cam: Camera, X: np.ndarray, area_px: float) -> float:
     """Equivalent radius (m) of a silhouette of ``area_px`` pixels² seen at point ``X``
     (m, lab frame): ``sqrt(area / π) · depth / f``."""

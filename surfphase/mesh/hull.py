@@ -188,52 +188,6 @@ def smooth_centres(
 MAX_HULL_VOXELS = 128
 
 
-def _pieces(lab: np.ndarray, b: int) -> list[tuple[np.ndarray, float, np.ndarray]]:
-    """Connected pieces (8-connected) of id ``b`` in one (H, W) label image: per piece
-    its (2,) centroid (u, v) pixels, its area (pixels) and its (H, W) bool mask."""
-    from scipy import ndimage as ndi
-
-    comp, n = ndi.label(lab == b, structure=np.ones((3, 3), bool))
-    out = []
-    for k in range(1, n + 1):
-        m = comp == k
-        r, c = np.nonzero(m)
-        out.append((np.array([c.mean(), r.mean()]), float(len(r)), m))
-    return out
-
-
-def _sphere(cameras: Sequence[Camera], uvs: Sequence[np.ndarray], areas: Sequence[float]):
-    """Two silhouettes' centroids ``uvs`` ((2,) px each) and areas (px) triangulated:
-    (centre (3,) m, mean radius m, largest reprojection error over the view's equivalent
-    radius, ratio of the larger to the smaller radius); None where the point is behind a
-    view or not finite."""
-    from surfphase.cameras import triangulate
-
-    X = triangulate(list(cameras[:2]), [np.asarray(u)[None] for u in uvs])[0]
-    if not np.all(np.isfinite(X)):
-        return None
-    radii, errs = [], []
-    for cam, uv, a in zip(cameras[:2], uvs, areas, strict=True):
-        z = float(cam.world_to_camera(X[None])[0, 2])
-        if z <= 0:
-            return None
-        r_px = np.sqrt(a / np.pi)
-        radii.append(r_px * z / float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])))
-        errs.append(float(np.linalg.norm(cam.project(X[None], distort=False)[0] - uv)) / r_px)
-    return X, float(np.mean(radii)), max(errs), max(radii) / max(min(radii), 1e-12)
-
-
-#: The id of the nucleation region, which holds every attached bubble: the pieces the
-#: two views agree on are meshed one by one (:func:`bubble_pieces`).
-NUCLEATION_ID = 0
-#: Two pieces of the nucleation region, one per view, are the same object when their
-#: centroids triangulate to a point that reprojects within this fraction of each
-#: piece's equivalent radius ...
-PIECE_REPROJ_R = 0.25
-#: ... and the radii the two pieces give at that point differ by at most this factor.
-PIECE_SIZE_RATIO = 1.5
-
-
 def bubble_pieces(
     cameras: Sequence[Camera], labels: Sequence[np.ndarray]
 ) -> list[tuple[int, np.ndarray, float, list[np.ndarray]]]:
@@ -242,12 +196,14 @@ def bubble_pieces(
     Per id ≥ 1 that both views' labels show: ``(id, centre, radius, masks)``, the
     (3,) centre (metres) its silhouettes' centroids triangulate to, the radius (metres,
     the silhouettes' mean equivalent radius √(area/π) times depth / focal) and its two
-    (H, W) bool silhouettes. The nucleation region (:data:`NUCLEATION_ID`) holds every
-    attached bubble, and the two views need not hold the same pieces of it: one entry
-    per pair of pieces, one from each view, that are the same object
-    (:data:`PIECE_REPROJ_R`, :data:`PIECE_SIZE_RATIO`), best agreeing first, each piece
-    in one pair; with no such pair, its whole silhouettes as one.
+    (H, W) bool silhouettes. The nucleation region
+    (:data:`~surfphase.masks.anchors.NUCLEATION_ID`) holds every attached bubble, and the
+    two views need not hold the same pieces of it: one entry per pair of pieces the two
+    views agree on (:func:`surfphase.masks.anchors.agreeing_pieces`); with no such
+    pair, its whole silhouettes as one.
     """
+    from surfphase.masks.anchors import NUCLEATION_ID, agreeing_pieces, pair_sphere
+
     lab0, lab1 = (np.asarray(lb) for lb in labels[:2])
     out = []
     for b in sorted(set(np.unique(lab0)) & set(np.unique(lab1))):
@@ -255,29 +211,20 @@ def bubble_pieces(
             continue
         found = []
         if b == NUCLEATION_ID:
-            p0, p1 = _pieces(lab0, int(b)), _pieces(lab1, int(b))
-            cands = []
-            for i, (u0, a0, _) in enumerate(p0):
-                for j, (u1, a1, _) in enumerate(p1):
-                    s = _sphere(cameras, [u0, u1], [a0, a1])
-                    if s is not None and s[2] <= PIECE_REPROJ_R and s[3] <= PIECE_SIZE_RATIO:
-                        cands.append((s[2], i, j, s))
-            used0, used1 = set(), set()
-            for _, i, j, s in sorted(cands, key=lambda x: x[:3]):
-                if i not in used0 and j not in used1:
-                    used0.add(i)
-                    used1.add(j)
-                    found.append((int(b), s[0], s[1], [p0[i][2], p1[j][2]]))
+            found = [
+                (int(b), X, r, [m0, m1])
+                for X, r, m0, m1 in agreeing_pieces(cameras, lab0, lab1, int(b))
+            ]
         if not found:
             masks = [lab0 == b, lab1 == b]
             uvs, areas = [], []
             for m in masks:
-                r, c = np.nonzero(m)
-                uvs.append(np.array([c.mean(), r.mean()]))
-                areas.append(float(len(r)))
-            s = _sphere(cameras, uvs, areas)
-            if s is not None and s[1] > 0:
-                found = [(int(b), s[0], s[1], masks)]
+                rr, cc = np.nonzero(m)
+                uvs.append(np.array([cc.mean(), rr.mean()]))
+                areas.append(float(len(rr)))
+            sp = pair_sphere(cameras, uvs, areas)
+            if sp is not None and sp[1] > 0:
+                found = [(int(b), sp[0], sp[1], masks)]
         out += found
     return out
 
