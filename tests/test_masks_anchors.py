@@ -388,13 +388,13 @@ def test_a_bubble_leaving_the_frame_keeps_the_shape_its_track_showed_whole(frac)
     assert border_ids(labels[1]) == {2} and border_ids(labels[0]) == set()
     assert cut_centres(contrasts[1], labels[1], {2}, 1, ANCHOR_DEFAULTS["min_visible"]) == {}
     lim = ANCHOR_DEFAULTS["min_visible_tracked"]
-    got = tracked_cut_centres(contrasts, labels, {1: {2}}, 1, lim)
+    got = tracked_cut_centres(contrasts.__getitem__, labels, {1: {2}}, 1, lim)
     u, v, area = got[1][2]
     assert np.hypot(u - u0, v - rows[1]) < 0.2, (u - u0, v - rows[1])
     assert area == pytest.approx(np.pi * a * b, rel=0.03)
     # Less inside than min_visible_tracked, or no frame showing it whole: no centre.
-    assert tracked_cut_centres(contrasts, labels, {1: {2}}, 1, frac + 0.05) == {}
-    assert tracked_cut_centres(contrasts[1:], labels[1:], {0: {2}}, 1, lim) == {}
+    assert tracked_cut_centres(contrasts.__getitem__, labels, {1: {2}}, 1, frac + 0.05) == {}
+    assert tracked_cut_centres(contrasts[1:].__getitem__, labels[1:], {0: {2}}, 1, lim) == {}
 
 
 def test_anchor_table_triangulates_a_bubble_cut_by_one_view_border():

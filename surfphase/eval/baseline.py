@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from surfphase.cameras import Camera, triangulate
+from surfphase.tracks import savgol_window
 
 #: A (frame, bubble) whose triangulated centroid reprojects farther than this from its
 #: mask centroid in any view (pixels of the masks) is left out, as a classical two-view
@@ -190,16 +191,13 @@ def smoothed_velocity(
         return out
     keys, index = np.asarray(keys), np.asarray(index, dtype=np.int64)
     values = np.asarray(values, dtype=np.float64).reshape(len(keys), -1)
-    want = max(int(round(window_s * fps)), order + 2)
-    want += 1 - want % 2
     order_idx = np.lexsort((index, keys))
     k, i = keys[order_idx], index[order_idx]
     # Run boundaries: a new key or a gap in the index.
     start = np.r_[True, (k[1:] != k[:-1]) | (i[1:] != i[:-1] + 1)]
     bounds = np.r_[np.flatnonzero(start), len(order_idx)]
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
-        n = b - a
-        win = min(want, n if n % 2 else n - 1)
+        win = savgol_window(window_s * fps, order, b - a)
         if win <= order + 1:
             continue
         rows = order_idx[a:b]

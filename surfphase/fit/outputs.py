@@ -52,6 +52,7 @@ import torch
 from surfphase.cameras import Camera
 from surfphase.fit import binding
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text
+from surfphase.tracks import savgol_window
 
 PER_SURFEL = ("means", "quats", "log_scales", "colors", "opacity")
 
@@ -399,14 +400,14 @@ def smooth_tracks(
             continue
         t = table["time_s"].to_numpy()[rows]
         dt = float(np.median(np.diff(t)))
-        win = _odd_window(window_s, dt, order, len(rows))
+        win = savgol_window(window_s / dt, order, len(rows))
         if win <= order:
             continue
         p = table[xyz].to_numpy(np.float64)[rows]
         kw = dict(window_length=win, polyorder=order, axis=0, mode="interp")
         smooth = savgol_filter(p, **kw)
         if end_window_s > 0 and order < 2:
-            w2 = _odd_window(end_window_s, dt, 2, len(rows))
+            w2 = savgol_window(end_window_s / dt, 2, len(rows))
             if w2 >= 5:
                 para = savgol_filter(p, window_length=w2, polyorder=2, axis=0, mode="interp")
                 n, h = len(rows), win // 2
@@ -415,14 +416,6 @@ def smooth_tracks(
                         smooth[rs] = para[rs]
         table.loc[table.index[rows], xyz] = smooth
         table.loc[table.index[rows], vel] = np.gradient(smooth, t, axis=0)
-
-
-def _odd_window(window_s: float, dt: float, order: int, n: int) -> int:
-    """``window_s`` in frames of ``dt`` seconds: at least ``order + 2``, odd, at most the
-    longest odd number ≤ ``n``."""
-    win = max(int(round(window_s / dt)), order + 2)
-    win += 1 - win % 2
-    return min(win, n if n % 2 else n - 1)
 
 
 def load_surfels(path: str | os.PathLike) -> dict[str, np.ndarray]:

@@ -18,7 +18,7 @@ stacks' pixel grid.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -478,7 +478,7 @@ def shape_centre(
 
 
 def tracked_cut_centres(
-    contrasts: Sequence[np.ndarray],
+    contrast_at: Callable[[int], np.ndarray],
     labels: np.ndarray,
     missing: Mapping[int, set[int]],
     ring_px: int = ANCHOR_DEFAULTS["ring_px"],
@@ -498,7 +498,8 @@ def tracked_cut_centres(
     (cover-weighted) area is at least ``min_visible`` of the ellipse's.
 
     Args:
-        contrasts: per frame position, (H, W) relative darkness in [0, 1].
+        contrast_at: frame position → its (H, W) relative darkness in [0, 1] (called
+            only for the frames a fit needs).
         labels: (T, H, W) int labels of the view, −1 background.
         missing: ``{position: ids}`` of the cut silhouettes without a centre.
         ring_px, margin_px: as :func:`cut_centres`.
@@ -517,7 +518,7 @@ def tracked_cut_centres(
         if (t, b) not in shapes:
             shapes[(t, b)] = None
             if b not in border_ids(lab[t]):
-                vis = visible_outline(contrasts[t], lab[t], _owners(lab[t], ring_px), b, ring_px)
+                vis = visible_outline(contrast_at(t), lab[t], _owners(lab[t], ring_px), b, ring_px)
                 if vis is not None and len(vis[0]) >= _MIN_OUTLINE_POINTS:
                     shapes[(t, b)] = outline_ellipse(vis[0])
         return shapes[(t, b)]
@@ -540,7 +541,7 @@ def tracked_cut_centres(
             if ref is None:
                 continue
             owner = _owners(lab[t], ring_px) if owner is None else owner
-            vis = visible_outline(contrasts[t], lab[t], owner, b, ring_px, margin_px)
+            vis = visible_outline(contrast_at(t), lab[t], owner, b, ring_px, margin_px)
             if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
                 continue
             fit = shape_centre(vis[0], ref)

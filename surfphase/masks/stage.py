@@ -191,7 +191,7 @@ def frame_anchors(
     cp, ap = params["classical"], params["anchors"]
     cents, cuts = [], []
     for c in names:
-        per, per_cut, cons = [], [], []
+        per, per_cut = [], []
         missing: dict[int, set[int]] = {}
         for t in range(stacks[c].shape[0]):
             con = classical.relative_contrast(stacks[c][t], cp, backgrounds[c])
@@ -203,10 +203,13 @@ def frame_anchors(
             per.append({**{b: v for b, v in cen.items() if b not in cut}, **fits})
             per_cut.append(set(fits))
             missing[t] = cut - {0} - set(fits)
-            cons.append(con)
         if float(ap["min_visible_tracked"]) <= 1.0 and any(missing.values()):
+
+            def contrast_at(t: int, c: str = c) -> np.ndarray:
+                return classical.relative_contrast(stacks[c][t], cp, backgrounds[c])
+
             tracked = anchors.tracked_cut_centres(
-                cons, labels[c], {t: m for t, m in missing.items() if m},
+                contrast_at, labels[c], {t: m for t, m in missing.items() if m},
                 int(ap["ring_px"]), float(ap["min_visible_tracked"]),
                 float(ap["max_shape_rms"]),
             )  # fmt: skip
