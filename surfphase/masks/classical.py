@@ -100,6 +100,19 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
     return bg.astype(np.float32)
 
 
+def _fill_along_rows(band: np.ndarray, unknown: np.ndarray) -> np.ndarray:
+    """``band`` (R, W) with its ``unknown`` ((R, W) bool) entries linearly interpolated
+    along each row from the row's other finite entries (the nearest one beyond the
+    last); a row with none keeps them."""
+    out = np.array(band, np.float64)
+    for r in np.flatnonzero(unknown.any(axis=1)):
+        known = np.isfinite(out[r]) & ~unknown[r]
+        if known.any():
+            u = np.flatnonzero(known)
+            out[r, unknown[r]] = np.interp(np.flatnonzero(unknown[r]), u, out[r, u])
+    return out
+
+
 def session_reference(
     frames: np.ndarray, percentile: float = 90.0, max_frames: int = 64
 ) -> np.ndarray:
@@ -121,6 +134,7 @@ def static_background(
     reference: np.ndarray,
     params: Mapping | None = None,
     plate_reference: np.ndarray | None = None,
+    plate_unknown: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Background model of a session from its :func:`session_reference`.
 
@@ -139,6 +153,9 @@ def static_background(
     background is the reference itself, except where the reference departs from its
     running median *along* the edge by more than ``static_outlier_frac``: there a
     bubble sat at a nucleation site all along, and the median replaces it.
+    ``plate_unknown`` ((H, W) bool): plate pixels whose value ``plate_reference`` does
+    not know (covered in nearly every frame); each is interpolated along the edge from
+    the known ones at the same depth below it.
 
     Returns ``background`` (H, W) float32 (polarity applied) and ``static`` (H, W) bool.
     """
@@ -183,6 +200,8 @@ def static_background(
     uu = np.broadcast_to(np.arange(w)[None, :], vv.shape)
     pref = ref if plate_reference is None else _polarised(plate_reference, p)
     band = np.where(valid, pref[np.minimum(vv, h - 1), uu], np.nan)
+    if plate_unknown is not None:
+        band = _fill_along_rows(band, valid & plate_unknown[np.minimum(vv, h - 1), uu])
     padded = np.pad(band, ((0, 0), (win // 2, win // 2)), constant_values=np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(padded, win, axis=1)
     with warnings.catch_warnings():
@@ -214,15 +233,69 @@ def static_background(
     return bg.astype(np.float32), static
 
 
+def uncovered_reference(
+    frames: np.ndarray,
+    covered: np.ndarray,
+    percentile: float,
+    max_frames: int,
+    grow_px: int,
+    min_free_frac: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel ``percentile`` of a (T, H, W) stack over the frames where no object
+    covers the pixel.
+
+    ``covered`` (T, H, W) bool marks the objects of a first segmentation; each frame's
+    is grown by ``grow_px`` pixels (their blurred rims). The frames are those of
+    :func:`session_reference` (at most ``max_frames``, evenly spaced).
+
+    Returns ``reference`` (H, W) float32 (NaN where fewer than ``min_free_frac`` of the
+    frames, and fewer than 2, leave the pixel free) and the (H, W) count of free frames.
+    """
+    n = frames.shape[0]
+    if covered.shape != frames.shape[:3]:
+        raise ValueError(f"covered is {covered.shape}, frames are {frames.shape[:3]}")
+    idx = np.unique(np.linspace(0, n - 1, min(n, int(max_frames))).round().astype(int))
+    grow = np.ones((3, 3), bool)
+    stack = np.empty((len(idx), *frames.shape[1:3]), np.float32)
+    for k, i in enumerate(idx):
+        cov = np.asarray(covered[i], bool)
+        if grow_px > 0 and cov.any():
+            cov = ndi.binary_dilation(cov, grow, iterations=int(grow_px))
+        stack[k] = np.where(cov, np.nan, to_unit_float(frames[i]))
+    free = np.isfinite(stack).sum(axis=0)
+    ok = free >= max(2, int(np.ceil(min_free_frac * len(idx))))
+    out = np.full(frames.shape[1:3], np.nan, np.float32)
+    if ok.any():
+        out[ok] = np.nanpercentile(stack[:, ok], percentile, axis=0)
+    return out, free
+
+
 def session_background(
-    frames: np.ndarray, params: Mapping | None = None
+    frames: np.ndarray, params: Mapping | None = None, covered: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(background, static)`` of a (T, H, W) session: :func:`static_background` of
-    its reference (``reference_percentile``), plate values from ``plate_percentile``."""
+    its reference (``reference_percentile``), plate values from ``plate_percentile``.
+
+    ``covered`` ((T, H, W) bool, the objects a first segmentation found): the plate
+    values are then the ``plate_percentile`` over the frames where no object covers the
+    pixel (:func:`uncovered_reference`, ``plate_grow_frac`` of the shorter side around
+    each object), where at least ``plate_free_frac`` of the frames do. A bubble that
+    rises slowly in front of the plate covers its pixels in most frames, so the plain
+    percentile keeps a ghost of it that hides its rim in every frame; where a bubble
+    sits all along, the plain percentile and its along-edge test stay."""
     p = {**CLASSICAL_DEFAULTS, **(params or {})}
     ref = session_reference(frames, p["reference_percentile"], p["reference_max_frames"])
     plate = session_reference(frames, p["plate_percentile"], p["reference_max_frames"])
-    return static_background(ref, p, plate)
+    if covered is None:
+        return static_background(ref, p, plate)
+    grow = int(round(float(p["plate_grow_frac"]) * min(frames.shape[1:3])))
+    free_ref, _ = uncovered_reference(
+        frames, covered, p["plate_percentile"], p["reference_max_frames"], grow,
+        float(p["plate_free_frac"]),
+    )  # fmt: skip
+    unknown = ~np.isfinite(free_ref)
+    plate = np.where(unknown, plate, free_ref).astype(np.float32)
+    return static_background(ref, p, plate, unknown)
 
 
 def _polarised(image: np.ndarray, p: Mapping) -> np.ndarray:
@@ -356,7 +429,8 @@ def foreground_mask(
     object's own peak (95th percentile, off the static structure), which follows the
     true outline of a blurred shadow whatever its darkness. In front of the static
     structure (``static``, (H, W) bool), where a bubble's contrast against the dim
-    plate is lower, ``static_edge`` is the edge instead. Holes (bright cores) are
+    plate is lower, ``static_edge`` is the edge instead, and an object there is closed
+    (a disc of ``static_close_px``) before its holes are filled. Holes (bright cores) are
     filled; with ``return_cores`` the filled holes are returned too, as a second
     (H, W) bool array: one core per bubble that shows one. ``noise`` ((H, W), the
     detection contrast's standard deviation, :func:`contrast_noise`) raises the two
@@ -381,6 +455,11 @@ def foreground_mask(
     fg = np.zeros_like(det)
     cores = np.zeros_like(det)
     grow = np.ones((3, 3), bool)
+    r_close = int(p["static_close_px"])
+    close = None
+    if static is not None and r_close > 0:
+        yy, xx = np.mgrid[-r_close : r_close + 1, -r_close : r_close + 1]
+        close = xx**2 + yy**2 <= r_close**2
     for k, sl in enumerate(ndi.find_objects(comp), start=1):
         if sl is None:
             continue
@@ -393,6 +472,12 @@ def foreground_mask(
         free = own & ~st
         peak = np.percentile(c[free] if free.sum() >= 4 else c[own], 95)
         edge = ((c >= p["edge_frac"] * peak) | (st & (c >= p["static_edge"]))) & region
+        if close is not None and (own & st).any():
+            # In front of the plate a bubble's dark rim and bright core are split by
+            # the contrast's zero crossing, and its rim is faint where it meets the
+            # plate: closed, the rim is one ring around one body.
+            closed = ndi.binary_closing(np.pad(edge, r_close), close)
+            edge = closed[r_close:-r_close, r_close:-r_close] & region
         filled = ndi.binary_fill_holes(edge)
         fg[sl] |= filled
         cores[sl] |= filled & ~edge

@@ -17,6 +17,13 @@ CLASSICAL_DEFAULTS: dict = {
     # plate, the plate percentile.
     "reference_percentile": 90.0,
     "plate_percentile": 50.0,
+    # Second pass: the plate values over the frames where the first pass's objects
+    # (grown by this fraction of the shorter side) leave a pixel free, where at least
+    # this fraction of the frames do (a slow bubble in front of the plate is otherwise
+    # part of its reference). false: one pass.
+    "plate_refine": True,
+    "plate_grow_frac": 0.02,
+    "plate_free_frac": 0.2,
     "reference_max_frames": 64,
     # Static dark structure (the heated plate): darker than the fitted background by
     # this fraction in the reference, touching the border, at least this area fraction.
@@ -30,6 +37,9 @@ CLASSICAL_DEFAULTS: dict = {
     "static_outlier_frac": 0.25,
     # Edge of a bubble in front of the static structure, relative contrast.
     "static_edge": 0.25,
+    # Radius (pixels) of the closing that joins an object's rim and core in front of
+    # the static structure (0: none).
+    "static_close_px": 2,
     # Where the background itself is darker than this (black plate sides), nothing is seen.
     "background_floor": 0.08,
     # Gaussian smoothing before detection (not for the edge), pixels.

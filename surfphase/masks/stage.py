@@ -161,10 +161,15 @@ def segment_stack(
     cp = params["classical"]
     bg = classical.session_background(stack, cp)
     if params["backend"] == "classical":
-        noise = classical.contrast_noise(stack, cp, bg)
-        for t in range(t_n):
-            labels[t], s = classical.segment_frame(stack[t], cp, bg, noise)
-            scores.append(s)
+        passes = 2 if cp["plate_refine"] and bg[1].any() else 1
+        for k in range(passes):
+            if k:  # the plate's values from the frames the first pass leaves it free
+                bg = classical.session_background(stack, cp, covered=labels >= 0)
+                scores = []
+            noise = classical.contrast_noise(stack, cp, bg)
+            for t in range(t_n):
+                labels[t], s = classical.segment_frame(stack[t], cp, bg, noise)
+                scores.append(s)
     else:
         for t in range(t_n):
             labels[t], s = backend.generate(unit_grey(stack[t]), params["sam"])
