@@ -59,6 +59,29 @@ def test_detection_precision_recall_hand_case():
     assert d["precision"] == pytest.approx(0.4) and d["recall"] == pytest.approx(0.5)
     wide = am.detection(pred, truth, seen, attached, gate_r_eq=0.8)
     assert (wide["real"], wide["free_found"]) == (3, 2)
+    # Bubble 1's centre has left a view's frame in frame 1: the centred recall leaves it out.
+    cen = am.detection(pred, truth, seen, attached, centred={0: {1, 2, 3}, 1: set()})
+    assert (cen["centred_seen"], cen["centred_found"], cen["recall_centred"]) == (1, 1, 1.0)
+    assert cen["recall"] == d["recall"]
+
+
+def test_centred_in_views_is_the_pinhole_projection_inside_the_image():
+    from surfphase.cameras import Camera
+
+    # Camera at z = -0.1 m looking along +z; f = 1000 px, principal point (31.5, 23.5)
+    # on a 64 x 48 image: x = ±1 mm at z = 0 lands ±10 px from the centre.
+    cam = Camera(
+        "cam0", 64, 48, np.array([[1000.0, 0, 31.5], [0, 1000.0, 23.5], [0, 0, 1]]),
+        np.zeros(0), np.eye(3), np.array([0.0, 0.0, 0.1]),
+    )  # fmt: skip
+    truth = pd.DataFrame(
+        [[0, 1, 0.0, 0.0, 0.0], [0, 2, 3.3 * MM, 0.0, 0.0], [1, 1, 0.0, -2.5 * MM, 0.0]],
+        columns=["frame", "bubble", "x", "y", "z"],
+    )
+    # 3.3 mm -> u = 64.5, past the last pixel's edge (63.5); -2.5 mm -> v = -1.5.
+    assert am.centred_in_views(truth, [cam]) == {0: {1}}
+    near = truth.assign(x=[0.0, 3.0 * MM, 0.0], y=[0.0, 0.0, -2.3 * MM])
+    assert am.centred_in_views(near, [cam, cam]) == {0: {1, 2}, 1: {1}}
 
 
 def _truth_rows(ids, centres, r_eq):

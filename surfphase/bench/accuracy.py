@@ -26,7 +26,9 @@ gated at :data:`GATE_R_EQ` (0.5 r_eq) before the assignment
 ``bubbles.csv``: ids ≥ 1 count as real when matched, the nucleation region (id 0) when a
 true bubble is attached to the plate in that frame (its surface within
 :data:`ATTACHED_R_EQ` r_eq of it). Recall is over the free (not attached) true
-bubble-frames seen in both input views (gt masks). Surfaces are compared on area-uniform
+bubble-frames seen in both input views (gt masks); "recall, centre in both frames"
+over those whose true centroid also projects inside both images (a bubble leaving the
+frame is seen while its centre is already outside). Surfaces are compared on area-uniform
 samples (:func:`surfphase.eval.geometry.sample_surface`): each true sample belongs to the
 true bubble nearest in ``distance / r_eq`` to its centroid.
 
@@ -157,6 +159,7 @@ COLUMNS = [
     ("abs err vx/vy/vz: smoothed", ("baseline_smoothed", "abs_v"), "low", None),
     ("precision", ("detection", "precision"), "high", "{:.3f}"),
     ("recall", ("detection", "recall"), "high", "{:.3f}"),
+    ("recall, centre in both frames", ("detection", "recall_centred"), "high", "{:.3f}"),
     ("Chamfer mm", ("chamfer_mm",), "low", "{:.3f}"),
     ("Chamfer % r_eq", ("chamfer_pct_r_eq",), "low", "{:.0f}"),
     ("within 0.25 r_eq", ("near_share",), "high", "{:.3f}"),

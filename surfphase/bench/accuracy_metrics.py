@@ -44,6 +44,7 @@ def detection(
     seen_both: dict[int, set[int]],
     attached: dict[int, set[int]],
     gate_r_eq: float = GATE_R_EQ,
+    centred: dict[int, set[int]] | None = None,
 ) -> dict:
     """Precision and recall of reported bubble-frames.
 
@@ -53,13 +54,16 @@ def detection(
         seen_both: ``{frame: ids of true bubbles seen in both input views}``.
         attached: ``{frame: ids of true bubbles attached to the plate}``.
         gate_r_eq: matching gate, r_eq of the true bubble.
+        centred: ``{frame: ids of true bubbles whose centroid projects inside both
+            input views}``: ``recall_centred`` is the recall over those only.
 
     Returns:
         ``precision`` (real reported / reported), ``recall`` (reported free true
         bubble-frames seen in both views / all of them), and the counts ``reported``,
-        ``real``, ``free_seen``, ``free_found`` (NaN ratios when a count is 0).
+        ``real``, ``free_seen``, ``free_found`` (NaN ratios when a count is 0); with
+        ``centred`` also ``recall_centred``, ``centred_seen``, ``centred_found``.
     """
-    reported = real = free_seen = free_found = 0
+    reported = real = free_seen = free_found = centred_seen = centred_found = 0
     frames = sorted(set(pred["frame"].astype(int)) | set(truth["frame"].astype(int)))
     for f in frames:
         p = pred[pred["frame"] == f]
@@ -82,7 +86,11 @@ def detection(
         free &= set(g["bubble"].astype(int))
         free_seen += len(free)
         free_found += len(free & matched_true)
-    return {
+        if centred is not None:
+            inside = free & set(centred.get(f, set()))
+            centred_seen += len(inside)
+            centred_found += len(inside & matched_true)
+    out = {
         "precision": real / reported if reported else math.nan,
         "recall": free_found / free_seen if free_seen else math.nan,
         "reported": reported,
@@ -90,6 +98,11 @@ def detection(
         "free_seen": free_seen,
         "free_found": free_found,
     }
+    if centred is not None:
+        out["recall_centred"] = centred_found / centred_seen if centred_seen else math.nan
+        out["centred_seen"] = centred_seen
+        out["centred_found"] = centred_found
+    return out
 
 
 def label_points(points: np.ndarray, centroids: np.ndarray, r_eq: np.ndarray) -> np.ndarray:
@@ -279,6 +292,25 @@ def seen_in_both(masks: Sequence[np.ndarray]) -> dict[int, set[int]]:
     return out
 
 
+def centred_in_views(truth: pd.DataFrame, cameras: Sequence) -> dict[int, set[int]]:
+    """``{frame: ids of the true bubbles whose centroid projects inside every camera's
+    image}`` (``truth``: rows ``frame, bubble, x, y, z`` in m; pixel centres at
+    integers, the image ``[−0.5, size − 0.5)``)."""
+    out: dict[int, set[int]] = {}
+    xyz = truth[XYZ].to_numpy(np.float64)
+    inside = np.ones(len(truth), bool)
+    for cam in cameras:
+        uv = np.asarray(cam.project(xyz), np.float64).reshape(-1, 2)
+        inside &= (uv[:, 0] >= -0.5) & (uv[:, 0] < cam.width - 0.5)
+        inside &= (uv[:, 1] >= -0.5) & (uv[:, 1] < cam.height - 0.5)
+    for f, b, ok in zip(
+        truth["frame"].astype(int), truth["bubble"].astype(int), inside, strict=True
+    ):
+        if ok:
+            out.setdefault(int(f), set()).add(int(b))
+    return out
+
+
 def session_metrics(
     session: str,
     gt_dir: Path,
@@ -318,7 +350,8 @@ def session_metrics(
     attached = {f: {int(i) for i in tf.ids[tf.attached]} for f, tf in tfs.items()}
     if pred is not None:
         row["method"] = velocity_scores(pred, truth)
-        row["detection"] = detection(pred, truth, seen, attached)
+        centred = centred_in_views(truth, [cams["cam0"], cams["cam1"]])
+        row["detection"] = detection(pred, truth, seen, attached, centred=centred)
         ch = [s["chamfer_mm"] for s in surf]
         req = [s["r_eq_mm"] for s in surf]
         row["chamfer_mm"] = nanmean(ch)
