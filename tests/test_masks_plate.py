@@ -87,3 +87,15 @@ def test_slow_bubble_in_front_of_the_plate_is_not_part_of_its_background():
         got = labels == ids[0]
         iou = (got & discs[t]).sum() / (got | discs[t]).sum()
         assert iou > 0.85, (t, iou)
+
+
+def test_nan_percentile_is_numpys():
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(24, 500))
+    v[rng.random(v.shape) < 0.6] = np.nan
+    v[0, 0], v[1:, 0] = 1.0, np.nan  # one finite value
+    v[:, 1] = 2.0  # ties
+    for q in (0.0, 37.5, 50.0, 90.0, 100.0):
+        np.testing.assert_allclose(
+            classical.nan_percentile(v, q), np.nanpercentile(v, q, axis=0), rtol=0, atol=1e-12
+        )
