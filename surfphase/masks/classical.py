@@ -284,8 +284,48 @@ def nan_percentile(values: np.ndarray, percentile: float) -> np.ndarray:
     return a + (pos - lo) * (b - a)
 
 
+def session_references(
+    frames: np.ndarray, params: Mapping | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The session's two (H, W) reference images (:func:`session_reference`): at
+    ``reference_percentile`` and at ``plate_percentile``."""
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    n = int(p["reference_max_frames"])
+    return (
+        session_reference(frames, p["reference_percentile"], n),
+        session_reference(frames, p["plate_percentile"], n),
+    )
+
+
+def plate_grow_px(shape: tuple[int, ...], params: Mapping | None = None) -> int:
+    """Pixels the first pass's objects are grown by (``plate_grow_frac`` of the shorter
+    side of a (…, H, W) ``shape``)."""
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    return int(round(float(p["plate_grow_frac"]) * min(shape[-2:])))
+
+
+def plate_touched(covered: np.ndarray, static: np.ndarray, params: Mapping | None = None) -> bool:
+    """Whether an object of ``covered`` ((T, H, W) bool), grown by :func:`plate_grow_px`,
+    reaches the static structure ``static`` ((H, W) bool) in a frame the references use
+    (:func:`session_reference`'s): only then does :func:`session_background` with
+    ``covered`` differ from the one without."""
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    n = covered.shape[0]
+    idx = np.unique(
+        np.linspace(0, n - 1, min(n, int(p["reference_max_frames"]))).round().astype(int)
+    )
+    grow = plate_grow_px(covered.shape, p)
+    near = (
+        ndi.binary_dilation(static, np.ones((3, 3), bool), iterations=grow) if grow > 0 else static
+    )
+    return bool(np.any(np.asarray(covered)[idx] & near[None]))
+
+
 def session_background(
-    frames: np.ndarray, params: Mapping | None = None, covered: np.ndarray | None = None
+    frames: np.ndarray,
+    params: Mapping | None = None,
+    covered: np.ndarray | None = None,
+    references: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(background, static)`` of a (T, H, W) session: :func:`static_background` of
     its reference (``reference_percentile``), plate values from ``plate_percentile``.
@@ -296,13 +336,13 @@ def session_background(
     each object), where at least ``plate_free_frac`` of the frames do. A bubble that
     rises slowly in front of the plate covers its pixels in most frames, so the plain
     percentile keeps a ghost of it that hides its rim in every frame; where a bubble
-    sits all along, the plain percentile and its along-edge test stay."""
+    sits all along, the plain percentile and its along-edge test stay. ``references``:
+    :func:`session_references` of these frames, when already computed."""
     p = {**CLASSICAL_DEFAULTS, **(params or {})}
-    ref = session_reference(frames, p["reference_percentile"], p["reference_max_frames"])
-    plate = session_reference(frames, p["plate_percentile"], p["reference_max_frames"])
+    ref, plate = session_references(frames, p) if references is None else references
     if covered is None:
         return static_background(ref, p, plate)
-    grow = int(round(float(p["plate_grow_frac"]) * min(frames.shape[1:3])))
+    grow = plate_grow_px(frames.shape[:3], p)
     free_ref, _ = uncovered_reference(
         frames, covered, p["plate_percentile"], p["reference_max_frames"], grow,
         float(p["plate_free_frac"]),

@@ -159,12 +159,15 @@ def segment_stack(
     labels = np.full((t_n, h, w), -1, np.int32)
     scores = []
     cp = params["classical"]
-    bg = classical.session_background(stack, cp)
+    refs = classical.session_references(stack, cp)
+    bg = classical.session_background(stack, cp, references=refs)
     if params["backend"] == "classical":
-        passes = 2 if cp["plate_refine"] and bg[1].any() else 1
-        for k in range(passes):
+        for k in range(2):
             if k:  # the plate's values from the frames the first pass leaves it free
-                bg = classical.session_background(stack, cp, covered=labels >= 0)
+                cov = labels >= 0
+                if not (cp["plate_refine"] and classical.plate_touched(cov, bg[1], cp)):
+                    break
+                bg = classical.session_background(stack, cp, covered=cov, references=refs)
                 scores = []
             noise = classical.contrast_noise(stack, cp, bg)
             for t in range(t_n):
