@@ -113,6 +113,12 @@ def _fill_along_rows(band: np.ndarray, unknown: np.ndarray) -> np.ndarray:
     return out
 
 
+def reference_frames(n: int, max_frames: int) -> np.ndarray:
+    """Indices of the at most ``max_frames`` evenly spaced frames of ``n`` that the
+    session's references are made of."""
+    return np.unique(np.linspace(0, n - 1, min(n, int(max_frames))).round().astype(int))
+
+
 def session_reference(
     frames: np.ndarray, percentile: float = 90.0, max_frames: int = 64
 ) -> np.ndarray:
@@ -125,7 +131,7 @@ def session_reference(
     n = frames.shape[0]
     if n == 0:
         raise ValueError("empty frame stack")
-    idx = np.unique(np.linspace(0, n - 1, min(n, int(max_frames))).round().astype(int))
+    idx = reference_frames(n, max_frames)
     stack = np.stack([to_unit_float(frames[i]) for i in idx])
     return np.percentile(stack, percentile, axis=0).astype(np.float32)
 
@@ -240,21 +246,21 @@ def uncovered_reference(
     max_frames: int,
     grow_px: int,
     min_free_frac: float,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> np.ndarray:
     """Per-pixel ``percentile`` of a (T, H, W) stack over the frames where no object
     covers the pixel.
 
     ``covered`` (T, H, W) bool marks the objects of a first segmentation; each frame's
     is grown by ``grow_px`` pixels (their blurred rims). The frames are those of
-    :func:`session_reference` (at most ``max_frames``, evenly spaced).
+    :func:`session_reference` (:func:`reference_frames`).
 
-    Returns ``reference`` (H, W) float32 (NaN where fewer than ``min_free_frac`` of the
-    frames, and fewer than 2, leave the pixel free) and the (H, W) count of free frames.
+    Returns (H, W) float32, NaN where fewer than ``min_free_frac`` of the frames, and
+    fewer than 2, leave the pixel free.
     """
     n = frames.shape[0]
     if covered.shape != frames.shape[:3]:
         raise ValueError(f"covered is {covered.shape}, frames are {frames.shape[:3]}")
-    idx = np.unique(np.linspace(0, n - 1, min(n, int(max_frames))).round().astype(int))
+    idx = reference_frames(n, max_frames)
     grow = np.ones((3, 3), bool)
     stack = np.empty((len(idx), *frames.shape[1:3]), np.float32)
     for k, i in enumerate(idx):
@@ -267,7 +273,7 @@ def uncovered_reference(
     out = np.full(frames.shape[1:3], np.nan, np.float32)
     if ok.any():
         out[ok] = nan_percentile(stack[:, ok], percentile)
-    return out, free
+    return out
 
 
 def nan_percentile(values: np.ndarray, percentile: float) -> np.ndarray:
@@ -310,10 +316,7 @@ def plate_touched(covered: np.ndarray, static: np.ndarray, params: Mapping | Non
     (:func:`session_reference`'s): only then does :func:`session_background` with
     ``covered`` differ from the one without."""
     p = {**CLASSICAL_DEFAULTS, **(params or {})}
-    n = covered.shape[0]
-    idx = np.unique(
-        np.linspace(0, n - 1, min(n, int(p["reference_max_frames"]))).round().astype(int)
-    )
+    idx = reference_frames(covered.shape[0], p["reference_max_frames"])
     grow = plate_grow_px(covered.shape, p)
     near = (
         ndi.binary_dilation(static, np.ones((3, 3), bool), iterations=grow) if grow > 0 else static
@@ -343,7 +346,7 @@ def session_background(
     if covered is None:
         return static_background(ref, p, plate)
     grow = plate_grow_px(frames.shape[:3], p)
-    free_ref, _ = uncovered_reference(
+    free_ref = uncovered_reference(
         frames, covered, p["plate_percentile"], p["reference_max_frames"], grow,
         float(p["plate_free_frac"]),
     )  # fmt: skip

@@ -149,7 +149,9 @@ def check_bubbles_found(meta: Mapping, ingest_dir: Path, instances, cameras: Seq
 def segment_stack(
     stack: np.ndarray, params: Mapping, backend=None
 ) -> tuple[np.ndarray, list, tuple[np.ndarray, np.ndarray]]:
-    """Segment every frame of a (T, H, W) stack.
+    """Segment every frame of a (T, H, W) stack; with the classical backend and
+    ``classical: plate_refine``, a second time on the plate's background from the frames
+    the first pass leaves free, when a first-pass object reaches the plate.
 
     Returns (T, H, W) int32 labels, per-frame scores, and the session's background
     model ``(background, static)`` (:func:`surfphase.masks.classical.session_background`;
@@ -162,17 +164,21 @@ def segment_stack(
     refs = classical.session_references(stack, cp)
     bg = classical.session_background(stack, cp, references=refs)
     if params["backend"] == "classical":
-        for k in range(2):
-            if k:  # the plate's values from the frames the first pass leaves it free
-                cov = labels >= 0
-                if not (cp["plate_refine"] and classical.plate_touched(cov, bg[1], cp)):
-                    break
-                bg = classical.session_background(stack, cp, covered=cov, references=refs)
-                scores = []
+
+        def segment_all(bg: tuple[np.ndarray, np.ndarray]) -> list:
             noise = classical.contrast_noise(stack, cp, bg)
+            out = []
             for t in range(t_n):
                 labels[t], s = classical.segment_frame(stack[t], cp, bg, noise)
-                scores.append(s)
+                out.append(s)
+            return out
+
+        scores = segment_all(bg)
+        cov = labels >= 0
+        if cp["plate_refine"] and classical.plate_touched(cov, bg[1], cp):
+            # Second pass: the plate's values from the frames the first leaves it free.
+            bg = classical.session_background(stack, cp, covered=cov, references=refs)
+            scores = segment_all(bg)
     else:
         for t in range(t_n):
             labels[t], s = backend.generate(unit_grey(stack[t]), params["sam"])
