@@ -47,5 +47,10 @@ DEFAULTS: dict = {
     # fit's bubbles.csv (the triangulated sub-pixel silhouette centres, smoothed along
     # its track), where the fit reports it (surfphase.mesh.surfaces.hull_mesh_frame).
     "hull_at_centres": True,
+    # ... and each bubble the image border cuts in a view drawn whole beyond the border
+    # before its hull is made, with the rules the mask stage's centres use (masks:
+    # anchors: min_visible, min_visible_tracked, max_shape_rms; surfphase.mesh.cut):
+    # otherwise its hull, and its mesh, stop at the border.
+    "complete_cut": True,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }

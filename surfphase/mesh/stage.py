@@ -47,9 +47,12 @@ import pandas as pd
 from surfphase.cameras import Camera
 from surfphase.folders.fit import BUBBLES, SURFELS, read_fit_bubbles, read_fit_surfels
 from surfphase.folders.ingest import read_ingest
+from surfphase.folders.masks import INFO as MASKS_INFO
 from surfphase.folders.masks import labels_path, read_masks
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text, part_dir, replace_dir
+from surfphase.masks.params import ANCHOR_DEFAULTS
 from surfphase.mesh.cleanup import mesh_stats
+from surfphase.mesh.cut import completed_view, cut_shapes
 from surfphase.mesh.measure import bubble_sizes, vertex_bubbles
 from surfphase.mesh.params import DEFAULTS  # every setting, with its default
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
@@ -121,6 +124,7 @@ class _Session:
     picks: list[int]  # positions (0-based) in surfels.npz to mesh, in order
     masks: list[np.ndarray] | None = None  # per input camera, (T, H, W) labels (carve_px)
     centres: dict[int, dict[int, np.ndarray]] | None = None  # frame → bubble → (3,) m
+    cut_rules: dict | None = None  # masks: anchors: rules of the cut silhouettes (complete_cut)
 
 
 def _open_session(
@@ -167,10 +171,38 @@ def _open_session(
     if p["surface"] == "hull" and p["hull_at_centres"] and (fit_dir / BUBBLES).is_file():
         centres = bubble_centres(read_fit_bubbles(fit_dir, f"session {session}"))
         hashed.append(fit_dir / BUBBLES)
+    cut_rules = None
+    if p["surface"] == "hull" and p["complete_cut"] and masks_dir is not None:
+        cut_rules = masks_anchor_rules(masks_dir)
+        hashed += [f for f in [masks_dir / MASKS_INFO] if f.is_file()]
     key = mesh_key(surfels_path, cam_path, p, dev)
     if hashed:
         key = hashlib.sha256("".join([key, *map(_file_hash, hashed)]).encode()).hexdigest()
-    return _Session(surfels, inputs, session, p, dev, key, picks, masks, centres)
+    return _Session(surfels, inputs, session, p, dev, key, picks, masks, centres, cut_rules)
+
+
+def masks_anchor_rules(masks_dir: Path) -> dict:
+    """The ``masks: anchors:`` settings the masks folder's centres were made with
+    (``masks.json``'s parameters; the defaults where it has none)."""
+    rules = dict(ANCHOR_DEFAULTS)
+    info = Path(masks_dir) / MASKS_INFO
+    if info.is_file():
+        rules.update((json.loads(info.read_text()).get("params") or {}).get("anchors") or {})
+    return rules
+
+
+def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], list[np.ndarray]]:
+    """The input cameras and (H, W) labels the hull of position ``t`` is made from: with
+    ``complete_cut``, each view's silhouettes the border cuts drawn whole beyond it, on a
+    grown grid (:mod:`surfphase.mesh.cut`); ``cache``: per view, its whole shapes."""
+    labels = [np.asarray(m[t]) for m in s.masks]
+    if s.cut_rules is None:
+        return list(s.inputs), labels
+    views = [
+        completed_view(cam, lab, cut_shapes(m, t, s.cut_rules, c))
+        for cam, lab, m, c in zip(s.inputs, labels, s.masks, cache, strict=True)
+    ]
+    return [v[0] for v in views], [v[1] for v in views]
 
 
 def bubble_centres(table: pd.DataFrame) -> dict[int, dict[int, np.ndarray]]:
@@ -237,6 +269,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
         )
     todo = [t for t in positions if t not in records]
     progress = Progress(len(todo), "mesh: frames to do")
+    shape_cache: list[dict] = [{} for _ in s.inputs]
     for t in todo:
         t0 = time.perf_counter()
         a = surf["alive"][t]
@@ -245,8 +278,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
         if s.p["surface"] == "hull":
             sb = surf["bubble"][t][a] if "bubble" in surf else np.full(int(a.sum()), -9)
             verts, faces, vbub = hull_mesh_frame(
-                s.inputs,
-                [np.asarray(m[t]) for m in s.masks],
+                *frame_views(s, t, shape_cache),
                 s.p,
                 surfel_spheres(surf["means"][t][a], sb),
                 None if s.centres is None else s.centres.get(int(surf["frame"][t])),

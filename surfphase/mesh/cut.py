@@ -1,0 +1,158 @@
+"""Silhouettes the image border cuts, completed beyond it for the elliptic hull
+([docs/method.md §10](../../docs/method.md#10-meshes)).
+
+A bubble that enters or leaves the frame shows one view only part of its silhouette.
+Its hull, made from that part, stops at the border: the mesh is a slice of the bubble,
+its volume too small, and once moved to the bubble's reported centre (which the mask
+stage takes from the ellipse of the whole silhouette, :mod:`surfphase.masks.anchors`)
+it sits off the bubble's surface. Here each such silhouette is drawn whole on a label
+image grown by a margin beyond the frame, with the rules the mask stage's centres use
+(``masks: anchors``): the ellipse fitted to its visible outline when at least
+``min_visible`` of it is inside the frame, else the shape the same view shows whole in
+the nearest frame of the bubble's track, moved onto the visible outline, when at least
+``min_visible_tracked`` of it is inside and the outline fits it within
+``max_shape_rms``. Inside the frame the masks are kept as they are; only pixels beyond
+the border are drawn. The outlines are the binary masks' own (pixel edges): the mesh
+stage has labels, not the images.
+
+Pixels per docs/conventions.md §4; cameras are the undistorted cameras of the label
+stacks' pixel grid.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from surfphase.cameras import Camera
+from surfphase.masks.anchors import (
+    _MIN_OUTLINE_POINTS,
+    border_ids,
+    outline_ellipse,
+    shape_centre,
+    visible_outline,
+)
+
+#: An ellipse ``(u, v, a, b, angle)``: centre (pixels, column, row), semi-axes (pixels)
+#: and orientation (degrees, ``cv2.fitEllipse``'s convention).
+Ellipse = tuple[float, float, float, float, float]
+
+
+def _outline(lab: np.ndarray, b: int, margin_px: int = 1) -> tuple[np.ndarray, float] | None:
+    """The binary silhouette's visible outline (pixel edges; the frame's cut and the
+    edges shared with another region left out) and its area (pixels²)."""
+    return visible_outline(
+        (lab == b).astype(np.float64), lab, lab, b, ring_px=0, margin_px=margin_px
+    )
+
+
+def ellipse_area(e: Ellipse) -> float:
+    """Area (pixels²) of ``e``."""
+    return float(np.pi * e[2] * e[3])
+
+
+def whole_shape(labels: np.ndarray, t: int, b: int) -> Ellipse | None:
+    """The ellipse fitted to region ``b``'s outline in frame ``t`` of a view's (T, H, W)
+    labels when the border does not cut it there, else None."""
+    lab = np.asarray(labels[t])
+    if b in border_ids(lab) or not (lab == b).any():
+        return None
+    vis = _outline(lab, b)
+    if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
+        return None
+    return outline_ellipse(vis[0])
+
+
+def cut_shapes(
+    labels: np.ndarray,
+    t: int,
+    rules: Mapping,
+    cache: dict | None = None,
+) -> dict[int, Ellipse]:
+    """The whole silhouette of every region (id ≥ 1) the border cuts in frame ``t``.
+
+    Args:
+        labels: (T, H, W) int labels of one view, −1 background.
+        t: the frame's position in ``labels``.
+        rules: ``min_visible``, ``min_visible_tracked``, ``max_shape_rms`` (as config
+            ``masks: anchors:``).
+        cache: ``{(t, id): ellipse or None}`` of whole shapes, kept between calls.
+
+    Returns:
+        ``{id: ellipse}``: the fitted or tracked ellipse of each cut region that gets one.
+    """
+    labels = np.asarray(labels)
+    lab = labels[t]
+    cache = {} if cache is None else cache
+    out: dict[int, Ellipse] = {}
+    for b in sorted(i for i in border_ids(lab) if i >= 1):
+        vis = _outline(lab, b)
+        if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
+            continue
+        pts, area = vis
+        own = outline_ellipse(pts)
+        if own is not None and area >= float(rules["min_visible"]) * ellipse_area(own):
+            out[b] = own
+            continue
+        if float(rules["min_visible_tracked"]) > 1.0:
+            continue
+        frames = np.flatnonzero((labels == b).any(axis=(1, 2)))
+        for t2 in sorted((int(k) for k in frames if k != t), key=lambda k: (abs(k - t), k)):
+            if (t2, b) not in cache:
+                cache[(t2, b)] = whole_shape(labels, t2, b)
+            ref = cache[(t2, b)]
+            if ref is None:
+                continue
+            fit = shape_centre(pts, ref)
+            if (
+                fit is not None
+                and fit[2] <= float(rules["max_shape_rms"]) * np.sqrt(ref[2] * ref[3])
+                and area >= float(rules["min_visible_tracked"]) * ellipse_area(ref)
+            ):
+                out[b] = (fit[0], fit[1], ref[2], ref[3], ref[4])
+            break
+    return out
+
+
+def inside_ellipse(u: np.ndarray, v: np.ndarray, e: Ellipse) -> np.ndarray:
+    """Whether the points (u, v) (pixels, any matching shapes) are inside ``e``."""
+    cu, cv, a, b, ang = e
+    t = np.radians(ang)
+    du, dv = u - cu, v - cv
+    x = du * np.cos(t) + dv * np.sin(t)  # along the first axis (cv2's width)
+    y = -du * np.sin(t) + dv * np.cos(t)
+    return (x / a) ** 2 + (y / b) ** 2 <= 1.0
+
+
+def completed_view(
+    camera: Camera, lab: np.ndarray, shapes: Mapping[int, Ellipse]
+) -> tuple[Camera, np.ndarray]:
+    """One view's labels grown beyond the frame, with ``shapes`` drawn there.
+
+    Args:
+        camera: the view's undistorted camera of the (H, W) ``lab`` grid.
+        lab: (H, W) int labels, −1 background.
+        shapes: ``{id: ellipse}`` of :func:`cut_shapes`.
+
+    Returns:
+        ``(camera, labels)``: the camera of the grown grid (the same camera, its image
+        grown by a margin ``m`` on every side: :meth:`Camera.cropped` at ``(−m, −m)``)
+        and its (H + 2m, W + 2m) labels: ``lab`` inside the frame, the ellipses beyond
+        it (where two overlap, the larger id's). Unchanged when ``shapes`` is empty.
+    """
+    lab = np.asarray(lab)
+    if not shapes:
+        return camera, lab
+    h, w = lab.shape
+    e = np.array([(u, v, max(a, b)) for u, v, a, b, _ in shapes.values()])
+    reach = np.max([e[:, 2] - e[:, 0], e[:, 0] + e[:, 2] - (w - 1), e[:, 2] - e[:, 1],
+                    e[:, 1] + e[:, 2] - (h - 1)])  # fmt: skip
+    m = int(np.ceil(max(float(reach), 0.0))) + 2
+    grown = np.full((h + 2 * m, w + 2 * m), -1, lab.dtype)
+    vv, uu = np.mgrid[-m : h + m, -m : w + m]
+    outside = (uu < 0) | (uu >= w) | (vv < 0) | (vv >= h)
+    for b, ell in sorted(shapes.items()):
+        grown[outside & inside_ellipse(uu, vv, ell)] = b
+    grown[m : m + h, m : m + w] = lab
+    return camera.cropped(-m, -m, w + 2 * m, h + 2 * m), grown

@@ -1,0 +1,93 @@
+"""Silhouettes the image border cuts, completed for the hull (surfphase.mesh.cut),
+against the same spheres seen whole by an uncut view."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_mesh_hull import CENTRE, _rig, _sphere_labels
+
+from surfphase.masks.anchors import outline_ellipse, visible_outline
+from surfphase.masks.params import ANCHOR_DEFAULTS
+from surfphase.mesh.cut import completed_view, cut_shapes
+
+SPHERES = {3: (CENTRE + [-1.5e-3, 0, 0], 1e-3), 5: (CENTRE + [1.5e-3, 0.5e-3, 0], 0.6e-3)}
+
+
+def _whole_ellipse(lab: np.ndarray, b: int):
+    m = (lab == b).astype(np.float64)
+    return outline_ellipse(visible_outline(m, lab, lab, b, ring_px=0)[0])
+
+
+def _cut_at(lab: np.ndarray, x0: int) -> np.ndarray:
+    """``lab`` with its first ``x0`` columns cut off."""
+    return np.ascontiguousarray(lab[:, x0:])
+
+
+def test_a_cut_silhouette_gets_its_own_ellipse_and_a_little_one_its_tracks_shape():
+    """Sphere 3 (30 px radius) with its left 30 % cut off: the ellipse of its visible
+    outline is the whole silhouette's within 0.3 px (centre and semi-axes); cut to
+    about 45 % (under min_visible 0.6), it gets the shape the same view shows whole in
+    another frame, moved onto its outline: again within 0.3 px. A bubble not cut gets
+    none."""
+    cam = _rig()[0]
+    whole = _sphere_labels(cam, SPHERES)
+    e = _whole_ellipse(whole, 3)
+    cols = np.flatnonzero((whole == 3).any(axis=0))
+    rules = dict(ANCHOR_DEFAULTS)
+    for frac, stack in ((0.3, None), (0.55, "tracked")):
+        x0 = int(cols[0] + frac * len(cols))
+        cut = _cut_at(whole, x0)
+        # Frame 0: the view before the bubble reached the border (whole), frame 1 cut.
+        before = np.roll(np.where(whole == 3, 3, -1), 40, axis=1)  # 40 px further right
+        labels = np.stack([_cut_at(before, x0), cut])
+        if stack is None:
+            labels = labels[1:]
+        shapes = cut_shapes(labels, len(labels) - 1, rules)
+        assert set(shapes) == {3}
+        got = shapes[3]
+        np.testing.assert_allclose(got[0] + x0, e[0], atol=0.3)
+        np.testing.assert_allclose(got[1], e[1], atol=0.3)
+        np.testing.assert_allclose(sorted(got[2:4]), sorted(e[2:4]), atol=0.3)
+    # Without the whole frame, a bubble 45 % inside gets no shape.
+    assert cut_shapes(_cut_at(whole, x0)[None], 0, rules) == {}
+
+
+def test_completed_hull_has_the_volume_of_the_whole_view():
+    """Sphere 3 cut 35 % by view 0's right border: its hull mesh from the completed view
+    has the volume and centre of the mesh from the uncut view (within 3 % and 0.02 r),
+    where the cut view's alone is 42 % short; sphere 5 (not cut) is unchanged."""
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+
+    cams = _rig()
+    labels = [_sphere_labels(c, SPHERES) for c in cams]
+    p = mesh_params({"surface": "hull"})
+    cols = np.flatnonzero((labels[0] == 3).any(axis=0))
+    x1 = int(cols[-1] + 1 - 0.35 * len(cols))
+    cut_cam = cams[0].cropped(0, 0, x1, cams[0].height)
+    cut_lab = np.ascontiguousarray(labels[0][:, :x1])
+    shapes = cut_shapes(cut_lab[None], 0, ANCHOR_DEFAULTS)
+    grown_cam, grown = completed_view(cut_cam, cut_lab, shapes)
+    m = (grown.shape[1] - cut_lab.shape[1]) // 2
+    np.testing.assert_array_equal(grown[m:-m, m:-m], cut_lab)  # the frame itself kept
+    assert (grown[:, -m:] == 3).any() and not (grown[:, :m] >= 0).any()
+
+    def volumes(cam0, lab0):
+        v, f, ids = hull_mesh_frame([cam0, cams[1]], [lab0, labels[1]], p)
+        out = {}
+        for b in (3, 5):
+            mine = ids == b
+            keep = mine[f].all(axis=1)
+            vb, fb = v[mine], (np.cumsum(mine) - 1)[f[keep]]
+            out[b] = (abs(signed_volume(vb, fb)), 0.5 * (vb.min(0) + vb.max(0)))
+        return out
+
+    ref, done, bare = (
+        volumes(cams[0], labels[0]),
+        volumes(grown_cam, grown),
+        volumes(cut_cam, cut_lab),
+    )
+    assert abs(done[3][0] / ref[3][0] - 1) < 0.03, done[3][0] / ref[3][0]
+    assert np.linalg.norm(done[3][1] - ref[3][1]) < 0.02 * 1e-3
+    assert bare[3][0] / ref[3][0] < 0.7, bare[3][0] / ref[3][0]
+    assert abs(done[5][0] / ref[5][0] - 1) < 1e-9
