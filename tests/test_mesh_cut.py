@@ -23,37 +23,40 @@ def _cut_at(lab: np.ndarray, x0: int) -> np.ndarray:
     return np.ascontiguousarray(lab[:, x0:])
 
 
-def test_a_cut_silhouette_gets_its_own_ellipse_and_a_little_one_its_tracks_shape():
-    """Sphere 3 (30 px radius) with its left 30 % cut off: the ellipse of its visible
-    outline is the whole silhouette's within 0.3 px (centre and semi-axes); cut to
-    about 45 % (under min_visible 0.6), it gets the shape the same view shows whole in
-    another frame, moved onto its outline: again within 0.3 px. A bubble not cut gets
-    none."""
+def test_a_cut_silhouette_gets_its_tracks_shape_or_a_circle():
+    """Sphere 3 (30 px radius) with its left 30 % or 55 % cut off: with a frame where
+    the view shows it whole, its shape is that one moved onto the visible outline, the
+    whole silhouette's ellipse within 0.3 px (centre and semi-axes); without one, the
+    circle fitted to its visible outline (within 0.5 px), or nothing with ``circles``
+    off. A bubble not cut gets none; a piece in the corner whose outline is a straight
+    line gets none."""
     cam = _rig()[0]
     whole = _sphere_labels(cam, SPHERES)
     e = _whole_ellipse(whole, 3)
     cols = np.flatnonzero((whole == 3).any(axis=0))
     rules = dict(ANCHOR_DEFAULTS)
-    for frac, stack in ((0.3, None), (0.55, "tracked")):
+    for frac in (0.3, 0.55):
         x0 = int(cols[0] + frac * len(cols))
         cut = _cut_at(whole, x0)
-        # Frame 0: the view before the bubble reached the border (whole), frame 1 cut.
         before = np.roll(np.where(whole == 3, 3, -1), 40, axis=1)  # 40 px further right
         labels = np.stack([_cut_at(before, x0), cut])
-        if stack is None:
-            labels = labels[1:]
-        shapes = cut_shapes(labels, len(labels) - 1, rules)
-        assert set(shapes) == {3}
-        got = shapes[3]
-        np.testing.assert_allclose(got[0] + x0, e[0], atol=0.3)
-        np.testing.assert_allclose(got[1], e[1], atol=0.3)
-        np.testing.assert_allclose(sorted(got[2:4]), sorted(e[2:4]), atol=0.3)
-    # Without the whole frame, a bubble 45 % inside gets no shape.
-    assert cut_shapes(_cut_at(whole, x0)[None], 0, rules) == {}
+        alone = cut[None]
+        for got in (cut_shapes(labels, 1, rules), cut_shapes(alone, 0, rules, circles=True)):
+            assert set(got) == {3}
+            tol = 0.3 if got[3][2] != got[3][3] else 0.5
+            np.testing.assert_allclose(got[3][0] + x0, e[0], atol=tol)
+            np.testing.assert_allclose(got[3][1], e[1], atol=tol)
+            np.testing.assert_allclose(sorted(got[3][2:4]), sorted(e[2:4]), atol=tol)
+        assert cut_shapes(alone, 0, rules, circles=False) == {}
+    corner = np.full((60, 80), -1, np.int32)
+    vv, uu = np.mgrid[0:60, 0:80]
+    corner[uu + vv < 12] = 4
+    assert cut_shapes(corner[None], 0, rules, circles=True) == {}
 
 
 def test_completed_hull_has_the_volume_of_the_whole_view():
-    """Sphere 3 cut 35 % by view 0's right border: its hull mesh from the completed view
+    """Sphere 3 cut 35 % by view 0's right border: its hull mesh from the view completed
+    by the circle fitted to its outline
     has the volume and centre of the mesh from the uncut view (within 3 % and 0.02 r),
     where the cut view's alone is 42 % short; sphere 5 (not cut) is unchanged."""
     from surfphase.mesh.measure import signed_volume
@@ -66,7 +69,8 @@ def test_completed_hull_has_the_volume_of_the_whole_view():
     x1 = int(cols[-1] + 1 - 0.35 * len(cols))
     cut_cam = cams[0].cropped(0, 0, x1, cams[0].height)
     cut_lab = np.ascontiguousarray(labels[0][:, :x1])
-    shapes = cut_shapes(cut_lab[None], 0, ANCHOR_DEFAULTS)
+    assert cut_shapes(cut_lab[None], 0, ANCHOR_DEFAULTS) == {}  # no whole frame, no circles
+    shapes = cut_shapes(cut_lab[None], 0, ANCHOR_DEFAULTS, circles=True)
     grown_cam, grown = completed_view(cut_cam, cut_lab, shapes)
     m = (grown.shape[1] - cut_lab.shape[1]) // 2
     np.testing.assert_array_equal(grown[m:-m, m:-m], cut_lab)  # the frame itself kept

@@ -28,7 +28,8 @@ true bubble is attached to the plate in that frame (its surface within
 :data:`ATTACHED_R_EQ` r_eq of it). Recall is over the free (not attached) true
 bubble-frames seen in both input views (gt masks); "recall, centre in both frames"
 over those whose true centroid also projects inside both images (a bubble leaving the
-frame is seen while its centre is already outside). Surfaces are compared on area-uniform
+frame is seen while its centre is already outside); the volume error likewise over all
+the true bubble-frames seen in both views and over those centred in both images. Surfaces are compared on area-uniform
 samples (:func:`surfphase.eval.geometry.sample_surface`): each true sample belongs to the
 true bubble nearest in ``distance / r_eq`` to its centroid.
 
@@ -164,6 +165,7 @@ COLUMNS = [
     ("Chamfer % r_eq", ("chamfer_pct_r_eq",), "low", "{:.0f}"),
     ("within 0.25 r_eq", ("near_share",), "high", "{:.3f}"),
     ("volume err %", ("volume_error_pct",), "low", "{:.0f}"),
+    ("volume err %, centre in both frames", ("volume_error_pct_centred",), "low", "{:.0f}"),
     ("bisector/across ÷ truth", ("extent_ratio_vs_truth",), "one", "{:.2f}"),
     ("held-out PSNR dB", ("psnr",), "high", "{:.2f}"),
     ("held-out SSIM", ("ssim",), "high", "{:.3f}"),

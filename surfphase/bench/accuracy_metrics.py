@@ -361,6 +361,14 @@ def session_metrics(
         row["near_share"] = nanmean([s["near"] for s in surf])
         per_bubble = [b for s in surf for b in s["bubbles"]]
         row["volume_error_pct"] = nanmean([100 * abs(v) for _, v, _ in per_bubble])
+        row["volume_error_pct_centred"] = nanmean(
+            [
+                100 * abs(v)
+                for f, s in zip(frames, surf, strict=True)
+                for b, v, _ in s["bubbles"]
+                if b in centred.get(f, set())
+            ]
+        )
         row["extent_ratio_vs_truth"] = nanmean([r for _, _, r in per_bubble])
         row["frames_without_mesh"] = int(
             sum(not (mesh_dir / f"{f:06d}.ply").is_file() for f in frames)

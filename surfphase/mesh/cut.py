@@ -4,16 +4,19 @@
 A bubble that enters or leaves the frame shows one view only part of its silhouette.
 Its hull, made from that part, stops at the border: the mesh is a slice of the bubble,
 its volume too small, and once moved to the bubble's reported centre (which the mask
-stage takes from the ellipse of the whole silhouette, :mod:`surfphase.masks.anchors`)
-it sits off the bubble's surface. Here each such silhouette is drawn whole on a label
-image grown by a margin beyond the frame, with the rules the mask stage's centres use
-(``masks: anchors``): the ellipse fitted to its visible outline when at least
-``min_visible`` of it is inside the frame, else the shape the same view shows whole in
-the nearest frame of the bubble's track, moved onto the visible outline, when at least
-``min_visible_tracked`` of it is inside and the outline fits it within
-``max_shape_rms``. Inside the frame the masks are kept as they are; only pixels beyond
-the border are drawn. The outlines are the binary masks' own (pixel edges): the mesh
-stage has labels, not the images.
+stage takes from the whole silhouette's ellipse, :mod:`surfphase.masks.anchors`) it
+sits off the bubble's surface. Here each such silhouette is drawn whole on a label image
+grown by a margin beyond the frame: as the shape the same view shows whole in the
+nearest frame of the bubble's track, moved onto the visible outline (as the mask stage's
+``tracked_cut_centres``), else, with ``circles``, as the circle fitted to the visible
+outline; either only when at least ``min_visible_tracked`` of it is inside the frame,
+the visible part fits inside it and the outline fits it within ``max_shape_rms`` of its
+radius (``masks: anchors:``). The ellipse fitted to a partial outline, which the mask
+stage's centres take when 60 % is visible, is not used: across the cut its axis is
+poorly constrained (a sphere's silhouette 64 % inside, radius 9.2 px, gave semi-axes of
+7.4 and 9.1 px; the circle 9.5 px). Inside the frame the masks are kept as they are;
+only pixels beyond the border are drawn. The outlines are the binary masks' own (pixel
+edges): the mesh stage has labels, not the images.
 
 Pixels per docs/conventions.md §4; cameras are the undistorted cameras of the label
 stacks' pixel grid.
@@ -69,34 +72,35 @@ def cut_shapes(
     t: int,
     rules: Mapping,
     cache: dict | None = None,
+    circles: bool = False,
 ) -> dict[int, Ellipse]:
     """The whole silhouette of every region (id ≥ 1) the border cuts in frame ``t``.
 
     Args:
         labels: (T, H, W) int labels of one view, −1 background.
         t: the frame's position in ``labels``.
-        rules: ``min_visible``, ``min_visible_tracked``, ``max_shape_rms`` (as config
-            ``masks: anchors:``).
+        rules: ``min_visible_tracked`` (above 1: no shapes), ``max_shape_rms`` (as
+            config ``masks: anchors:``).
         cache: ``{(t, id): ellipse or None}`` of whole shapes, kept between calls.
+        circles: a region whose track shows no whole shape gets the circle fitted to
+            its visible outline, by the same rules (a prior: a bubble of a millimetre is
+            near-spherical; ``mesh: complete_cut_circles``).
 
     Returns:
-        ``{id: ellipse}``: the fitted or tracked ellipse of each cut region that gets one.
+        ``{id: ellipse}``: the shape of each cut region that gets one.
     """
     labels = np.asarray(labels)
     lab = labels[t]
     cache = {} if cache is None else cache
+    lo, rms_max = float(rules["min_visible_tracked"]), float(rules["max_shape_rms"])
     out: dict[int, Ellipse] = {}
+    if lo > 1.0:
+        return out
     for b in sorted(i for i in border_ids(lab) if i >= 1):
         vis = _outline(lab, b)
         if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
             continue
         pts, area = vis
-        own = outline_ellipse(pts)
-        if own is not None and area >= float(rules["min_visible"]) * ellipse_area(own):
-            out[b] = own
-            continue
-        if float(rules["min_visible_tracked"]) > 1.0:
-            continue
         frames = np.flatnonzero((labels == b).any(axis=(1, 2)))
         for t2 in sorted((int(k) for k in frames if k != t), key=lambda k: (abs(k - t), k)):
             if (t2, b) not in cache:
@@ -105,14 +109,43 @@ def cut_shapes(
             if ref is None:
                 continue
             fit = shape_centre(pts, ref)
+            # The visible part lies inside the whole silhouette.
             if (
                 fit is not None
-                and fit[2] <= float(rules["max_shape_rms"]) * np.sqrt(ref[2] * ref[3])
-                and area >= float(rules["min_visible_tracked"]) * ellipse_area(ref)
+                and fit[2] <= rms_max * np.sqrt(ref[2] * ref[3])
+                and lo * ellipse_area(ref) <= area <= ellipse_area(ref)
             ):
                 out[b] = (fit[0], fit[1], ref[2], ref[3], ref[4])
             break
+        if b not in out and circles:
+            c = fit_circle(pts)
+            if (
+                c is not None
+                and c[3] <= rms_max * c[2]
+                and lo * np.pi * c[2] ** 2 <= area <= np.pi * c[2] ** 2
+            ):
+                out[b] = (c[0], c[1], c[2], c[2], 0.0)
     return out
+
+
+def fit_circle(points: np.ndarray) -> tuple[float, float, float, float] | None:
+    """``(u, v, r, rms)``: the circle nearest (N, 2) outline points (pixels) in the least
+    squares of their distances to it (``scipy.optimize.least_squares`` from the
+    algebraic fit), and the rms of those distances; None where it fails."""
+    from scipy.optimize import least_squares
+
+    P = np.asarray(points, np.float64)
+    if len(P) < 3:
+        return None
+    A = np.column_stack([2 * P, np.ones(len(P))])
+    sol = np.linalg.lstsq(A, (P**2).sum(axis=1), rcond=None)[0]
+    r0 = float(np.sqrt(max(sol[2] + sol[0] ** 2 + sol[1] ** 2, 1e-12)))
+    res = least_squares(
+        lambda c: np.linalg.norm(P - c[:2], axis=1) - c[2], np.r_[sol[:2], r0], method="lm"
+    )
+    if not res.success or not np.isfinite(res.x).all() or res.x[2] <= 0:
+        return None
+    return float(res.x[0]), float(res.x[1]), float(res.x[2]), float(np.sqrt(np.mean(res.fun**2)))
 
 
 def inside_ellipse(u: np.ndarray, v: np.ndarray, e: Ellipse) -> np.ndarray:

@@ -48,9 +48,13 @@ DEFAULTS: dict = {
     # its track), where the fit reports it (surfphase.mesh.surfaces.hull_mesh_frame).
     "hull_at_centres": True,
     # ... and each bubble the image border cuts in a view drawn whole beyond the border
-    # before its hull is made, with the rules the mask stage's centres use (masks:
-    # anchors: min_visible, min_visible_tracked, max_shape_rms; surfphase.mesh.cut):
+    # before its hull is made: the shape its track shows whole in the nearest frame of
+    # that view, moved onto its visible outline, by the rules the mask stage's centres
+    # use (masks: anchors: min_visible_tracked, max_shape_rms; surfphase.mesh.cut);
     # otherwise its hull, and its mesh, stop at the border.
     "complete_cut": True,
+    # ... and one whose track shows no whole shape, the circle fitted to its visible
+    # outline, by the same rules (a prior: a bubble of a millimetre is near-spherical).
+    "complete_cut_circles": True,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }

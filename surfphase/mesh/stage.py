@@ -199,7 +199,9 @@ def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], l
     if s.cut_rules is None:
         return list(s.inputs), labels
     views = [
-        completed_view(cam, lab, cut_shapes(m, t, s.cut_rules, c))
+        completed_view(
+            cam, lab, cut_shapes(m, t, s.cut_rules, c, bool(s.p["complete_cut_circles"]))
+        )
         for cam, lab, m, c in zip(s.inputs, labels, s.masks, cache, strict=True)
     ]
     return [v[0] for v in views], [v[1] for v in views]
