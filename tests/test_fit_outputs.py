@@ -191,6 +191,36 @@ def test_track_ends_take_a_parabola_only_where_the_track_curves():
     np.testing.assert_array_equal(out["straight", 0.0], out["straight", 0.005])
 
 
+def test_blended_track_is_the_mean_of_two_savitzky_golay_fits():
+    """With ``blend_window_s`` the track is the mean of the two moving polynomials, each
+    scipy's own ``savgol_filter`` over its window (odd frames, ``mode="interp"``), and
+    the velocity column is still the track's own derivative; a track too short for the
+    second polynomial keeps the first alone."""
+    import pandas as pd
+    from scipy.signal import savgol_filter
+
+    from surfphase.fit.outputs import smooth_tracks
+
+    fps, n = 2000.0, 25
+    t = np.arange(n) / fps
+    rng = np.random.default_rng(2)
+    y = 0.002 + 0.2 * t + 0.5 * 3.0 * t**2 + rng.normal(0, 4e-6, n)
+
+    def table_of(y, n):
+        return pd.DataFrame({"frame": np.arange(n), "time_s": t[:n], "bubble": 1, "x": 0.0,
+                             "y": y[:n], "z": 0.0, "vx": 0.0, "vy": np.nan, "vz": 0.0})  # fmt: skip
+
+    tab = table_of(y, n)
+    smooth_tracks(tab, np.zeros(n, int), 0.003, 1, 0.0, 0.0, 0.008, 2)
+    short = savgol_filter(y, 7, 1, mode="interp")  # 3 ms: 6 frames, made odd
+    long = savgol_filter(y, 17, 2, mode="interp")  # 8 ms: 16 frames, made odd
+    np.testing.assert_allclose(tab["y"], 0.5 * (short + long), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(tab["vy"], np.gradient(0.5 * (short + long), t), atol=1e-12)
+    tiny = table_of(y, 3)  # 3 frames: no parabola of a window > 2 fits
+    smooth_tracks(tiny, np.zeros(3, int), 0.003, 1, 0.0, 0.0, 0.008, 2)
+    np.testing.assert_allclose(tiny["y"], savgol_filter(y[:3], 3, 1, mode="interp"), atol=1e-15)
+
+
 def test_track_segments_end_at_a_merge():
     import pandas as pd
 

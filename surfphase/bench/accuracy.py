@@ -89,13 +89,13 @@ def method_track_table(
     the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
     (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
     the table is a function of these)."""
-    from surfphase.fit.outputs import anchored_table, bubble_table, nucleation_frames
+    from surfphase.fit.outputs import anchored_table, bubble_table, nucleation_frames, track_rules
     from surfphase.fit.stage import DEFAULTS
     from surfphase.folders.fit import read_fit_surfels
     from surfphase.folders.ingest import read_ingest
     from surfphase.folders.masks import read_anchors, read_masks
 
-    ends = (float(DEFAULTS["track_end_window_s"]), float(DEFAULTS["track_end_t"]))
+    ends = track_rules(DEFAULTS)
     arrays = read_fit_surfels(fit_dir)
     # The workflow's layout: results/<session>/{ingest,masks,fit}.
     ingest = read_ingest(Path(fit_dir).parent / "ingest")

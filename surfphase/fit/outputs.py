@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import os
 import shutil
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -171,7 +171,7 @@ def bubble_table(
     frames: np.ndarray,
     track_window_s: float = 0.0,
     track_order: int = 2,
-    track_ends: tuple[float, float] = (0.0, 0.0),
+    track_rules: tuple = (),
 ) -> pd.DataFrame:
     """Per frame and bubble: centroid (m) and velocity (m/s) of the surfels bound at that
     frame (weights ``o·s_x·s_y`` at that frame).
@@ -239,7 +239,7 @@ def bubble_table(
     if track_window_s > 0 and len(table):
         pos = {int(f): t for t, f in enumerate(frames)}
         seg = track_segments(table, [pos[int(f)] for f in table["frame"]], bub, w)
-        smooth_tracks(table, seg, track_window_s, track_order, *track_ends)
+        smooth_tracks(table, seg, track_window_s, track_order, *track_rules)
     return table
 
 
@@ -276,7 +276,7 @@ def anchored_table(
     track_order: int,
     min_track_frames: int = 1,
     n_frames: int | None = None,
-    track_ends: tuple[float, float] = (0.0, 0.0),
+    track_rules: tuple = (),
 ) -> pd.DataFrame:
     """``bubbles.csv`` with each bubble's centre from its triangulated silhouettes.
 
@@ -296,8 +296,7 @@ def anchored_table(
         anchors: ``frame, bubble, x, y, z`` (m, lab frame).
         nucleation_frames: session frame indices where every view's masks show id 0.
         track_window_s, track_order: as ``fit: track_window_s``, ``track_order``.
-        track_ends: ``(fit: track_end_window_s, track_end_t)``
-            (:func:`smooth_tracks`' ``end_window_s``, ``end_t``).
+        track_rules: :func:`smooth_tracks`' further arguments (:func:`track_rules`).
     """
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
     nuc = table[(table["bubble"] == 0) & table["frame"].isin(sorted(nucleation_frames))]
@@ -319,7 +318,7 @@ def anchored_table(
             t = bub["time_s"].to_numpy()[rows]
             bub.loc[rows, vel] = np.gradient(bub[xyz].to_numpy(np.float64)[rows], t, axis=0)
     if track_window_s > 0 and len(bub):
-        smooth_tracks(bub, seg, track_window_s, track_order, *track_ends)
+        smooth_tracks(bub, seg, track_window_s, track_order, *track_rules)
     out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 
@@ -368,6 +367,8 @@ def smooth_tracks(
     order: int,
     end_window_s: float = 0.0,
     end_t: float = 0.0,
+    blend_window_s: float = 0.0,
+    blend_order: int = 2,
 ) -> None:
     """Replace each track's centroids and velocities by a moving polynomial fit, in place.
 
@@ -387,6 +388,12 @@ def smooth_tracks(
     standard errors from 0 in some axis, :func:`quadratic_t`), the half window of rows
     at that end takes a moving parabola over ``end_window_s`` (``savgol_filter`` of
     order 2) instead.
+
+    With ``blend_window_s`` > 0 the track is the mean of that smoothing and a second
+    moving polynomial of order ``blend_order`` over ``blend_window_s`` seconds (capped at
+    the track likewise; left out where the track is too short for it): one linear
+    smoother whose kernel is the mean of the two, a short low-order window that follows
+    a bubble's changes and a long higher-order one that averages more of its noise.
     """
     from scipy.signal import savgol_filter
 
@@ -414,8 +421,27 @@ def smooth_tracks(
                 for rs, fit in ((slice(0, h), slice(0, w2)), (slice(n - h, n), slice(n - w2, n))):
                     if quadratic_t(t[fit], p[fit]) > end_t:
                         smooth[rs] = para[rs]
+        if blend_window_s > 0:
+            w3 = savgol_window(blend_window_s / dt, int(blend_order), len(rows))
+            if w3 >= int(blend_order) + 2:  # fewer frames: the polynomial is the data
+                long = savgol_filter(
+                    p, window_length=w3, polyorder=int(blend_order), axis=0, mode="interp"
+                )
+                smooth = 0.5 * (smooth + long)
         table.loc[table.index[rows], xyz] = smooth
         table.loc[table.index[rows], vel] = np.gradient(smooth, t, axis=0)
+
+
+def track_rules(p: Mapping) -> tuple[float, float, float, int]:
+    """:func:`smooth_tracks`' arguments after the window and order, from the fit's
+    settings: ``(track_end_window_s, track_end_t, track_blend_window_s,
+    track_blend_order)``."""
+    return (
+        float(p["track_end_window_s"]),
+        float(p["track_end_t"]),
+        float(p["track_blend_window_s"]),
+        int(p["track_blend_order"]),
+    )
 
 
 def load_surfels(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -488,7 +514,7 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
     shutil.rmtree(final, ignore_errors=True)
     os.replace(tmp_dir, final)
 
-    ends = (float(p["track_end_window_s"]), float(p["track_end_t"]))
+    rules = track_rules(p)
     if p["anchor_centres"] and data.anchors is not None:
         table = anchored_table(
             bubble_table(arrays, times, frames),
@@ -498,11 +524,11 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
             int(p["track_order"]),
             int(p["min_track_frames"]),
             F,
-            ends,
+            rules,
         )
     else:
         table = bubble_table(
-            arrays, times, frames, float(p["track_window_s"]), int(p["track_order"]), ends
+            arrays, times, frames, float(p["track_window_s"]), int(p["track_order"]), rules
         )
     atomic_write_text(out_dir / "bubbles.csv", table.to_csv(index=False))
     curves = pd.DataFrame([row for r in records for row in r["curves"]])

@@ -105,6 +105,11 @@ DEFAULTS: dict = {
     # straight line over a track's last window lags an accelerating bubble (0: off).
     "track_end_window_s": 0.005,
     "track_end_t": 5.0,
+    # ... and, with a window > 0 (seconds), the track is the mean of that and a second
+    # moving polynomial of order track_blend_order over this window (0: off): a short
+    # line that follows a bubble's changes and a long parabola that averages more noise.
+    "track_blend_window_s": 0.008,
+    "track_blend_order": 2,
     # Two views leave a bubble's extent along their bisector (the mean viewing direction)
     # unseen: surfels may sit anywhere in the visual hull's long corners. With a number k,
     # after every step a surfel farther than k·r along that axis from its bubble's centre

@@ -81,7 +81,8 @@ def cut_shapes(
         t: the frame's position in ``labels``.
         rules: ``min_visible_tracked`` (above 1: no shapes), ``max_shape_rms`` (as
             config ``masks: anchors:``).
-        cache: ``{(t, id): ellipse or None}`` of whole shapes, kept between calls.
+        cache: kept between calls on the same ``labels``: ``{(t, id): ellipse or None}``
+            of whole shapes and ``{("frames", id): positions where id is}``.
         circles: a region whose track shows no whole shape gets the circle fitted to
             its visible outline, by the same rules (a prior: a bubble of a millimetre is
             near-spherical; ``mesh: complete_cut_circles``).
@@ -101,7 +102,9 @@ def cut_shapes(
         if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
             continue
         pts, area = vis
-        frames = np.flatnonzero((labels == b).any(axis=(1, 2)))
+        if ("frames", b) not in cache:
+            cache[("frames", b)] = np.flatnonzero((labels == b).any(axis=(1, 2)))
+        frames = cache[("frames", b)]
         for t2 in sorted((int(k) for k in frames if k != t), key=lambda k: (abs(k - t), k)):
             if (t2, b) not in cache:
                 cache[(t2, b)] = whole_shape(labels, t2, b)
