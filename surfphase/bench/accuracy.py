@@ -85,8 +85,9 @@ def method_track_table(
     fit_dir: Path, window_s: float, order: int, min_track_frames: int | None = None
 ) -> pd.DataFrame:
     """The method's ``bubbles.csv`` as ``fit: track_window_s = window_s`` (and
-    ``track_order``; the default ``track_end_window_s``, ``track_end_t``) writes it, computed from the same fit's ``surfels.npz`` and, when
-    the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
+    ``track_order``; the other track settings their defaults,
+    :func:`~surfphase.fit.outputs.track_rules`) writes it, computed from the same fit's
+    ``surfels.npz`` and, when the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
     (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
     the table is a function of these)."""
     from surfphase.fit.outputs import anchored_table, bubble_table, nucleation_frames, track_rules
@@ -95,14 +96,14 @@ def method_track_table(
     from surfphase.folders.ingest import read_ingest
     from surfphase.folders.masks import read_anchors, read_masks
 
-    ends = track_rules(DEFAULTS)
+    rules = track_rules(DEFAULTS)
     arrays = read_fit_surfels(fit_dir)
     # The workflow's layout: results/<session>/{ingest,masks,fit}.
     ingest = read_ingest(Path(fit_dir).parent / "ingest")
     masks = Path(fit_dir).parent / "masks"
     anchors = read_anchors(masks, ingest.session)
     if anchors is None:
-        return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order, ends)
+        return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order, rules)
     cams = ingest.input_cameras()
     labels = list(read_masks(masks, cams, ingest.session).labels.values())
     frames = np.asarray(arrays["frame"], dtype=np.int64)
@@ -110,7 +111,9 @@ def method_track_table(
     table = bubble_table(arrays, arrays["time_s"], frames)
     if min_track_frames is None:
         min_track_frames = int(DEFAULTS["min_track_frames"])
-    return anchored_table(table, anchors, nuc, window_s, order, min_track_frames, len(frames), ends)
+    return anchored_table(
+        table, anchors, nuc, window_s, order, min_track_frames, len(frames), rules
+    )
 
 
 def track_consistency(pred: pd.DataFrame) -> float:
@@ -518,8 +521,8 @@ def _notes(smoothing, method_smoothing, set_values: Sequence[str], cores: int) -
         "geometry: a fragment, a merge the views see differently). Baseline smoothed: "
         f"Savitzky–Golay (deriv=1) over {window * 1e3:g} ms, order {order} (best of the "
         f"grid below on these sessions). Method track-smoothed: `fit: track_window_s: "
-        f"{m_window:g}`, `track_order: {m_order}` (best of the same grid for the method), "
-        "computed from the same fits' surfels. Config: `surfphase new-campaign` defaults + "
+        f"{m_window:g}`, `track_order: {m_order}` (best of the same grid for the method; "
+        "its other track settings the defaults), computed from the same fits' surfels. Config: `surfphase new-campaign` defaults + "
         f"{json.dumps(BENCH_CONFIG)}"
         + (f" + --set {' '.join(set_values)}" if set_values else "")
         + f"; {cores} cores."
