@@ -2,7 +2,8 @@
 
 Every stage has a ``DEFAULTS`` dict (the key and its default for each setting it knows);
 its settings come from the config block of the same name. :func:`unknown_keys` lists the
-keys given that are not in the defaults, dotted (``masks.classical.thresold_low``) for
+keys given that are not in the defaults (and :func:`text_for_numbers` the values given
+as text where the default is a number), dotted (``masks.classical.thresold_low``) for
 those inside a nested section. The stages raise on them (:func:`check_keys`) when a job
 starts, and the workflow (``workflow/rules/common.smk``) checks every stage's block of
 the config with the same function before any job runs, one line per unknown key.
@@ -34,6 +35,34 @@ def unknown_keys(defaults: Mapping, given: Mapping | None, section: str) -> list
     return out
 
 
+def text_for_numbers(defaults: Mapping, given: Mapping | None, section: str) -> list[str]:
+    """``section.key: ...`` for each value of ``given`` that is a number written as text
+    where ``defaults`` holds a number (nested sections recursed, as
+    :func:`unknown_keys`). YAML 1.1, which Snakemake and PyYAML read, takes a number with
+    an exponent and no decimal point (``5e-5``) for text, which a stage would otherwise
+    compare with numbers: the message says how to write it."""
+    out: list[str] = []
+    for key, value in (given or {}).items():
+        where = f"{section}.{key}"
+        default = defaults.get(key) if key in defaults else None
+        if isinstance(default, Mapping) and isinstance(value, Mapping):
+            out.extend(text_for_numbers(default, value, where))
+        elif (
+            isinstance(default, int | float)
+            and not isinstance(default, bool)
+            and isinstance(value, str)
+        ):
+            try:  # other text may be a setting's named value (mesh: speed_max: session)
+                number = float(value)
+            except ValueError:
+                continue
+            out.append(
+                f"{where}: {value!r} is text, a number is expected: write {number!r} "
+                f"(YAML reads {value} as text)"
+            )
+    return out
+
+
 def known_keys(defaults: Mapping, dotted: str) -> list[str]:
     """The keys known beside ``dotted`` (a name from :func:`unknown_keys`), sorted."""
     level = defaults
@@ -60,9 +89,12 @@ def key_hint(defaults: Mapping, dotted: str, see: str = "") -> str:
 
 
 def check_keys(defaults: Mapping, given: Mapping | None, section: str, see: str = "") -> None:
-    """Raise ValueError naming every key of ``given`` that ``defaults`` lacks."""
-    bad = unknown_keys(defaults, given, section)
+    """Raise ValueError naming every key of ``given`` that ``defaults`` lacks, and every
+    value that is text where the default is a number (:func:`text_for_numbers`)."""
+    bad = [
+        f"unknown parameter {k} ({key_hint(defaults, k, see)})"
+        for k in unknown_keys(defaults, given, section)
+    ]
+    bad += text_for_numbers(defaults, given, section)
     if bad:
-        raise ValueError(
-            "; ".join(f"unknown parameter {k} ({key_hint(defaults, k, see)})" for k in bad)
-        )
+        raise ValueError("; ".join(bad))

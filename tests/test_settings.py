@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from surfphase.settings import check_keys, key_hint, unknown_keys
+from surfphase.settings import check_keys, key_hint, text_for_numbers, unknown_keys
 
 DEFAULTS = {
     "backend": "classical",
@@ -55,6 +55,29 @@ def test_check_keys_raises_naming_every_unknown_key():
     msg = str(e.value)
     assert "masks.classical.thresold_low (did you mean threshold_low?)" in msg
     assert "masks.zzz" in msg
+
+
+def test_a_number_yaml_reads_as_text_is_named_with_its_spelling():
+    """``5e-5`` in a YAML config is text (YAML 1.1, PyYAML's and Snakemake's reader): the
+    stage names the key and how to write it, nested sections too; other text (a named
+    value such as ``speed_max: session``) and real numbers pass."""
+    import yaml
+
+    from surfphase.masks.params import DEFAULTS as MASKS
+    from surfphase.mesh.params import DEFAULTS as MESH
+
+    given = yaml.safe_load("associate:\n  nucleation_height: 5e-5\n")
+    assert given["associate"]["nucleation_height"] == "5e-5"  # the reader, as documented
+    with pytest.raises(ValueError, match=r"masks.associate.nucleation_height: '5e-5' is text"):
+        check_keys(MASKS, given, "masks")
+    assert "write 5e-05" in text_for_numbers(MASKS, given, "masks")[0]
+    assert text_for_numbers(MESH, {"speed_max": "session", "voxels": 32}, "mesh") == []
+    assert (
+        text_for_numbers(
+            MASKS, yaml.safe_load("associate:\n  nucleation_height: 5.0e-5\n"), "masks"
+        )
+        == []
+    )
 
 
 def test_stage_defaults_import_without_torch():

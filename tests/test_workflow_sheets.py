@@ -156,6 +156,12 @@ def test_config_typo_fails_the_whole_dag_in_one_line(campaign: Path):
             "  iters_frist: 150 ",
             "config fit.iters_frist: unknown key (did you mean iters_first?)",
         ),
+        (  # a number YAML reads as text
+            "  track_window_s: 0.003 ",
+            "  track_window_s: 3e-3 ",
+            "config fit.track_window_s: '3e-3' is text, a number is expected: write 0.003 "
+            "(YAML reads 3e-3 as text)",
+        ),
     ],
 )
 def test_stage_key_typo_fails_the_whole_dag_in_one_line(campaign: Path, old, new, line):

@@ -311,8 +311,20 @@ def bench_config(set_values: Sequence[str] = ()) -> dict:
             node = node.setdefault(k, {})
             if not isinstance(node, dict):
                 raise ValueError(f"--set {item}: {k} is not a section of the config")
-        node[last] = yaml.safe_load(value)
+        node[last] = yaml_value(value)
     return cfg
+
+
+def yaml_value(text: str):
+    """``text`` read as a YAML value, a number written with an exponent and no decimal
+    point (``5e-5``, which YAML 1.1 reads as text) as that number."""
+    value = yaml.safe_load(text)
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
 
 
 def write_run_campaign(synth_dir: Path, run_dir: Path, config: dict) -> pd.DataFrame:

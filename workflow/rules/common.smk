@@ -26,7 +26,7 @@ import yaml
 from snakemake.exceptions import WorkflowError
 from snakemake.settings.types import DeploymentMethod
 from snakemake.utils import min_version, validate
-from surfphase.settings import key_hint, unknown_keys
+from surfphase.settings import key_hint, text_for_numbers, unknown_keys
 from surfphase.views_params import REFINE_DEFAULTS
 
 min_version("8.0")
@@ -73,6 +73,7 @@ def stage_key_problems(cfg):
             continue  # absent, or not a mapping: the schema says so
         for key in unknown_keys(defaults, given, section):
             lines.append(f"config {key}: unknown key ({key_hint(defaults, key, see)})")
+        lines += [f"config {line}" for line in text_for_numbers(defaults, given, section)]
     return lines
 
 
