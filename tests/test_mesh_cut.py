@@ -95,3 +95,35 @@ def test_completed_hull_has_the_volume_of_the_whole_view():
     assert np.linalg.norm(done[3][1] - ref[3][1]) < 0.02 * 1e-3
     assert bare[3][0] / ref[3][0] < 0.7, bare[3][0] / ref[3][0]
     assert abs(done[5][0] / ref[5][0] - 1) < 1e-9
+
+
+def test_the_mesh_stage_grows_the_views_of_a_cut_frame_with_the_masks_rules(tmp_path):
+    """``frame_views`` grows a view whose bubble the border cuts (and leaves the other
+    as it is) with ``complete_cut``, and hands the labels over unchanged without it;
+    the rules are the masks folder's ``masks.json`` ``anchors`` settings over the
+    defaults (``min_visible_tracked`` above 1: no shapes)."""
+    import json
+
+    from surfphase.mesh.stage import _Session, frame_views, masks_anchor_rules, mesh_params
+
+    cams = _rig()
+    labels = [_sphere_labels(c, SPHERES) for c in cams]
+    cols = np.flatnonzero((labels[0] == 3).any(axis=0))
+    x1 = int(cols[-1] + 1 - 0.35 * len(cols))
+    inputs = [cams[0].cropped(0, 0, x1, cams[0].height), cams[1]]
+    stacks = [np.ascontiguousarray(labels[0][None, :, :x1]), labels[1][None]]
+    (tmp_path / "masks.json").write_text(json.dumps({"params": {"anchors": {"ring_px": 2}}}))
+    rules = masks_anchor_rules(tmp_path)
+    assert rules["ring_px"] == 2 and rules["max_shape_rms"] == ANCHOR_DEFAULTS["max_shape_rms"]
+    p = mesh_params({"surface": "hull"})
+    s = _Session({}, inputs, "s", p, "cpu", "k", [0], stacks, None, rules)
+    views, labs = frame_views(s, 0, [{}, {}])
+    assert labs[0].shape[1] > x1 and (labs[0] == 3).sum() > (stacks[0][0] == 3).sum()
+    assert views[0].width == labs[0].shape[1]
+    assert np.array_equal(labs[1], stacks[1][0]) and views[1] is cams[1]  # not cut
+    off = _Session({}, inputs, "s", p, "cpu", "k", [0], stacks, None, None)
+    views, labs = frame_views(off, 0, [{}, {}])
+    assert np.array_equal(labs[0], stacks[0][0]) and views[0] is inputs[0]
+    never = _Session({}, inputs, "s", p, "cpu", "k", [0], stacks, None,
+                     {**rules, "min_visible_tracked": 1.5})  # fmt: skip
+    assert np.array_equal(frame_views(never, 0, [{}, {}])[1][0], stacks[0][0])
