@@ -29,9 +29,10 @@ true bubble is attached to the plate in that frame (its surface within
 bubble-frames seen in both input views (gt masks); "recall, centre in both frames"
 over those whose true centroid also projects inside both images (a bubble leaving the
 frame is seen while its centre is already outside); the volume error likewise over all
-the true bubble-frames seen in both views and over those centred in both images. Surfaces are compared on area-uniform
-samples (:func:`surfphase.eval.geometry.sample_surface`): each true sample belongs to the
-true bubble nearest in ``distance / r_eq`` to its centroid.
+the true bubble-frames seen in both views and over those centred in both images.
+Surfaces are compared on area-uniform samples
+(:func:`surfphase.eval.geometry.sample_surface`): each true sample belongs to the true
+bubble nearest in ``distance / r_eq`` to its centroid.
 
 The per-session figures are :mod:`surfphase.bench.accuracy_metrics`; this module runs the
 bench, chooses the smoothing and writes the table.
@@ -87,7 +88,8 @@ def method_track_table(
     """The method's ``bubbles.csv`` as ``fit: track_window_s = window_s`` (and
     ``track_order``; the other track settings their defaults,
     :func:`~surfphase.fit.outputs.track_rules`) writes it, computed from the same fit's
-    ``surfels.npz`` and, when the session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
+    ``surfels.npz`` and, when the session's masks have them (``fit: anchor_centres``),
+    their ``anchors.csv``
     (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
     the table is a function of these)."""
     from surfphase.fit.outputs import anchored_table, bubble_table, nucleation_frames, track_rules
@@ -534,7 +536,8 @@ def _notes(smoothing, method_smoothing, set_values: Sequence[str], cores: int) -
         f"Savitzky–Golay (deriv=1) over {window * 1e3:g} ms, order {order} (best of the "
         f"grid below on these sessions). Method track-smoothed: `fit: track_window_s: "
         f"{m_window:g}`, `track_order: {m_order}` (best of the same grid for the method; "
-        "its other track settings the defaults), computed from the same fits' surfels. Config: `surfphase new-campaign` defaults + "
+        "its other track settings the defaults), computed from the same fits' surfels. "
+        "Config: `surfphase new-campaign` defaults + "
         f"{json.dumps(BENCH_CONFIG)}"
         + (f" + --set {' '.join(set_values)}" if set_values else "")
         + f"; {cores} cores."

@@ -171,7 +171,7 @@ def bubble_table(
     frames: np.ndarray,
     track_window_s: float = 0.0,
     track_order: int = 2,
-    track_rules: tuple = (),
+    rules: tuple = (),
 ) -> pd.DataFrame:
     """Per frame and bubble: centroid (m) and velocity (m/s) of the surfels bound at that
     frame (weights ``o·s_x·s_y`` at that frame).
@@ -239,7 +239,7 @@ def bubble_table(
     if track_window_s > 0 and len(table):
         pos = {int(f): t for t, f in enumerate(frames)}
         seg = track_segments(table, [pos[int(f)] for f in table["frame"]], bub, w)
-        smooth_tracks(table, seg, track_window_s, track_order, *track_rules)
+        smooth_tracks(table, seg, track_window_s, track_order, *rules)
     return table
 
 
@@ -276,7 +276,7 @@ def anchored_table(
     track_order: int,
     min_track_frames: int = 1,
     n_frames: int | None = None,
-    track_rules: tuple = (),
+    rules: tuple = (),
 ) -> pd.DataFrame:
     """``bubbles.csv`` with each bubble's centre from its triangulated silhouettes.
 
@@ -296,7 +296,7 @@ def anchored_table(
         anchors: ``frame, bubble, x, y, z`` (m, lab frame).
         nucleation_frames: session frame indices where every view's masks show id 0.
         track_window_s, track_order: as ``fit: track_window_s``, ``track_order``.
-        track_rules: :func:`smooth_tracks`' further arguments (:func:`track_rules`).
+        rules: :func:`smooth_tracks`' further arguments (:func:`track_rules`).
     """
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
     nuc = table[(table["bubble"] == 0) & table["frame"].isin(sorted(nucleation_frames))]
@@ -318,7 +318,7 @@ def anchored_table(
             t = bub["time_s"].to_numpy()[rows]
             bub.loc[rows, vel] = np.gradient(bub[xyz].to_numpy(np.float64)[rows], t, axis=0)
     if track_window_s > 0 and len(bub):
-        smooth_tracks(bub, seg, track_window_s, track_order, *track_rules)
+        smooth_tracks(bub, seg, track_window_s, track_order, *rules)
     out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 

@@ -477,6 +477,16 @@ def shape_centre(
     return float(best.x[0]), float(best.x[1]), rms
 
 
+def nearest_whole(frames: Sequence[int], t: int, whole_at: Callable[[int], object]):
+    """The shape ``whole_at(k)`` of the frame ``k`` ≠ ``t`` of ``frames`` nearest to
+    ``t`` (the earlier of two as near) where it is not None; None when there is none."""
+    for k in sorted((int(k) for k in frames if k != t), key=lambda k: (abs(k - t), k)):
+        shape = whole_at(k)
+        if shape is not None:
+            return shape
+    return None
+
+
 def tracked_cut_centres(
     contrast_at: Callable[[int], np.ndarray],
     labels: np.ndarray,
@@ -532,12 +542,7 @@ def tracked_cut_centres(
     for t, ids in sorted(missing.items()):
         owner = None
         for b in sorted(ids):
-            ref = None
-            for t2 in sorted(frames_of.get(b, []), key=lambda k: (abs(k - t), k)):
-                if t2 != t:
-                    ref = whole(t2, b)
-                    if ref is not None:
-                        break
+            ref = nearest_whole(frames_of.get(b, []), t, lambda k, b=b: whole(k, b))
             if ref is None:
                 continue
             owner = _owners(lab[t], ring_px) if owner is None else owner

@@ -32,6 +32,7 @@ from surfphase.cameras import Camera
 from surfphase.masks.anchors import (
     _MIN_OUTLINE_POINTS,
     border_ids,
+    nearest_whole,
     outline_ellipse,
     shape_centre,
     visible_outline,
@@ -105,21 +106,21 @@ def cut_shapes(
         if ("frames", b) not in cache:
             cache[("frames", b)] = np.flatnonzero((labels == b).any(axis=(1, 2)))
         frames = cache[("frames", b)]
-        for t2 in sorted((int(k) for k in frames if k != t), key=lambda k: (abs(k - t), k)):
-            if (t2, b) not in cache:
-                cache[(t2, b)] = whole_shape(labels, t2, b)
-            ref = cache[(t2, b)]
-            if ref is None:
-                continue
-            fit = shape_centre(pts, ref)
-            # The visible part lies inside the whole silhouette.
-            if (
-                fit is not None
-                and fit[2] <= rms_max * np.sqrt(ref[2] * ref[3])
-                and lo * ellipse_area(ref) <= area <= ellipse_area(ref)
-            ):
-                out[b] = (fit[0], fit[1], ref[2], ref[3], ref[4])
-            break
+
+        def whole_at(k: int, b: int = b):
+            if (k, b) not in cache:
+                cache[(k, b)] = whole_shape(labels, k, b)
+            return cache[(k, b)]
+
+        ref = nearest_whole(frames, t, whole_at)
+        fit = None if ref is None else shape_centre(pts, ref)
+        # The visible part lies inside the whole silhouette.
+        if (
+            fit is not None
+            and fit[2] <= rms_max * np.sqrt(ref[2] * ref[3])
+            and lo * ellipse_area(ref) <= area <= ellipse_area(ref)
+        ):
+            out[b] = (fit[0], fit[1], ref[2], ref[3], ref[4])
         if b not in out and circles:
             c = fit_circle(pts)
             if (
