@@ -12,7 +12,10 @@ Instances come from a segmentation backend as per-camera label stacks
    the Hungarian algorithm and gated.
 2. **Nucleation region.** A paired instance whose silhouette bottom triangulates to
    within ``nucleation_height`` metres of the heated plate (y = 0) is attached to the
-   plate: it belongs to bubble 0, the nucleation region.
+   plate: it belongs to bubble 0, the nucleation region. A bubble that rises out of it
+   slowly in frames is free from the moment the line through its bottom heights over
+   its first frames leaves the plate (:mod:`surfphase.masks.detach`): those attached
+   frames become its own.
 3. **Through time, per view.** Free instances are tracked frame to frame: each
    track's mask is shifted by its last displacement (constant velocity) and matched
    to the next frame's instances by mask IoU (Hungarian). A track hidden behind
@@ -42,6 +45,7 @@ from scipy import ndimage as ndi
 from scipy.optimize import linear_sum_assignment
 
 from surfphase.cameras import Camera, triangulate
+from surfphase.masks import detach
 from surfphase.masks.merges import lobe_frames, reconcile_merges
 from surfphase.masks.params import ASSOCIATE_DEFAULTS
 from surfphase.masks.tracking import Tracks, track_view
@@ -200,6 +204,20 @@ def _on_plate(inst: pd.DataFrame, plates: Mapping[str, np.ndarray]) -> set[tuple
     return out
 
 
+def bottom_heights(
+    inst: pd.DataFrame, pairs: pd.DataFrame, cam_a: str, cam_b: str, cams: tuple[Camera, Camera]
+) -> np.ndarray:
+    """(P,) lab height y (m) of each pair's triangulated silhouette bottoms (the rows of
+    ``pairs``, a :func:`pair_views` table)."""
+    if len(pairs) == 0:
+        return np.zeros(0)
+    ia = inst[inst.camera == cam_a].set_index(["frame", "local"])
+    ib = inst[inst.camera == cam_b].set_index(["frame", "local"])
+    ua = ia.loc[list(zip(pairs.frame, pairs.local_a, strict=True)), ["bot_u", "bot_v"]]
+    ub = ib.loc[list(zip(pairs.frame, pairs.local_b, strict=True)), ["bot_u", "bot_v"]]
+    return triangulate(list(cams), [ua.to_numpy(float), ub.to_numpy(float)])[:, 1]
+
+
 def _attached_pairs(
     inst: pd.DataFrame,
     pairs: pd.DataFrame,
@@ -231,15 +249,10 @@ def _attached_pairs(
         out |= _on_plate(inst, plates) - paired
         if cams is None:
             return out
-    ia = inst[inst.camera == cam_a].set_index(["frame", "local"])
-    ib = inst[inst.camera == cam_b].set_index(["frame", "local"])
     if cams is not None:
         if len(pairs) == 0:
             return out
-        ua = ia.loc[list(zip(pairs.frame, pairs.local_a, strict=True)), ["bot_u", "bot_v"]]
-        ub = ib.loc[list(zip(pairs.frame, pairs.local_b, strict=True)), ["bot_u", "bot_v"]]
-        X = triangulate(list(cams), [ua.to_numpy(float), ub.to_numpy(float)])
-        low = X[:, 1] < params["nucleation_height"]
+        low = bottom_heights(inst, pairs, cam_a, cam_b, cams) < params["nucleation_height"]
         for (t, la, lb), lw in zip(
             pairs[["frame", "local_a", "local_b"]].itertuples(index=False), low, strict=True
         ):
@@ -304,10 +317,17 @@ def associate(
             cam_pair = (cameras[a], cameras[b])
         pairs = pair_views(inst, a, b, height, cam_pair, p)
         attached = _attached_pairs(inst, pairs, a, b, cam_pair, height, p, plates)
-    tracks = {}
-    for c in names:
-        att = {(t, loc) for (cc, t, loc) in attached if cc == c}
-        tracks[c] = track_view(labels[c], inst[inst.camera == c], att, p)
+    tracks = _track_views(labels, inst, names, attached, p)
+    if cam_pair is not None and attached:
+        keys = detach.pair_keys(pairs, names[0], names[1])
+        hts = bottom_heights(inst, pairs, names[0], names[1], cam_pair)
+        heights = {k: float(h) for (ka, kb), h in zip(keys, hts, strict=True) for k in (ka, kb)}
+        partner = {ka: kb for ka, kb in keys} | {kb: ka for ka, kb in keys}
+        two = {c: tracks[c] for c in names[:2]}
+        freed = detach.freed_instances(labels, two, heights, partner, attached, fps, p)
+        if freed:
+            attached = attached - freed
+            tracks = _track_views(labels, inst, names, attached, p)
     if len(names) >= 2:
         tracks.update(reconcile_merges(tracks, labels, pairs, names[0], names[1], p, fps))
     groups = _link_tracks(tracks, names, pairs, p)
@@ -320,6 +340,18 @@ def associate(
     ].sort_values(["frame", "camera", "bubble"], kind="stable")
     events = _event_table(tracks, names, groups, bubble_of_group)
     return out_labels, instances.reset_index(drop=True), events
+
+
+def _track_views(
+    labels: Mapping[str, np.ndarray], inst: pd.DataFrame, names: Sequence[str],
+    attached: set[tuple[str, int, int]], p: Mapping,
+) -> dict[str, Tracks]:  # fmt: skip
+    """Every view's :func:`track_view` of its free instances."""
+    out = {}
+    for c in names:
+        att = {(t, loc) for (cc, t, loc) in attached if cc == c}
+        out[c] = track_view(labels[c], inst[inst.camera == c], att, p)
+    return out
 
 
 class _Groups:

@@ -88,6 +88,12 @@ ASSOCIATE_DEFAULTS: dict = {
     # An attached bubble's silhouette bottom is within this height of the plate, metres
     # (about two pixels of a typical recording: the bottom's triangulation error).
     "nucleation_height": 1.0e-4,
+    # A bubble rising out of the nucleation region is free from the moment the line
+    # through its triangulated bottom heights over its first frames (this many seconds,
+    # at least detach_fit_min_frames) reaches the plate: frames before it left the
+    # nucleation height become its own (surfphase.masks.detach).
+    "detach_fit_s": 0.002,
+    "detach_fit_min_frames": 4,
     # Without cameras: attached when the bottom is within this many rows (fraction of
     # the height) of the lowest silhouette bottom seen in the session.
     "nucleation_margin_frac": 0.02,
