@@ -301,8 +301,11 @@ def anchored_table(
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
     nuc = table[(table["bubble"] == 0) & table["frame"].isin(sorted(nucleation_frames))]
     bub = table[table["bubble"] >= 1].drop(columns=xyz + vel)
-    a = anchors[anchors["bubble"] >= 1][["frame", "bubble", *xyz]]
+    low = ["low", "reproj_px"] if {"low", "reproj_px"} <= set(anchors.columns) else []
+    a = anchors[anchors["bubble"] >= 1][["frame", "bubble", *xyz, *low]]
     bub = bub.merge(a, on=["frame", "bubble"], how="inner")
+    if not low:
+        bub["low"], bub["reproj_px"] = False, 0.0
     bub = bub.sort_values(["bubble", "frame"], kind="stable").reset_index(drop=True)
     f = bub["frame"].to_numpy(np.int64)
     b = bub["bubble"].to_numpy(np.int64)
@@ -318,9 +321,68 @@ def anchored_table(
             t = bub["time_s"].to_numpy()[rows]
             bub.loc[rows, vel] = np.gradient(bub[xyz].to_numpy(np.float64)[rows], t, axis=0)
     if track_window_s > 0 and len(bub):
-        smooth_tracks(bub, seg, track_window_s, track_order, *rules)
+        reach = (rules[2] if len(rules) > 2 else 0.0) or track_window_s
+        lead = lead_rows(
+            bub["low"].to_numpy(bool), bub["reproj_px"].to_numpy(np.float64),
+            bub["time_s"].to_numpy(np.float64), seg, reach,
+        )  # fmt: skip
+        clean = bub[~lead].copy()
+        smooth_tracks(clean, seg[~lead], track_window_s, track_order, *rules)
+        bub.loc[~lead, xyz + vel] = clean[xyz + vel].to_numpy()
+        if lead.any():
+            extrapolate_leads(bub, seg, lead, reach)
     out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
+
+
+def lead_rows(
+    low: np.ndarray, reproj: np.ndarray, t: np.ndarray, seg: np.ndarray, window_s: float
+) -> np.ndarray:
+    """(R,) bool: the rows that lead a track (``seg``, rows in time order) with ``low``
+    set (a bubble just off the plate), up to the last of them whose two views agree
+    worse (``reproj``: the anchors' ``reproj_px``) than in every row of the track's
+    next ``window_s`` seconds (``t``: seconds): there the plate's image damaged a
+    silhouette and its centroid is not its centre's projection. A track with fewer
+    than 3 rows after them has none."""
+    out = np.zeros(len(seg), bool)
+    for s in np.unique(seg):
+        rows = np.flatnonzero(seg == s)
+        k = int(np.argmin(low[rows])) if not low[rows].all() else len(rows)
+        if not k or len(rows) - k < 3:
+            continue
+        after = rows[k:]
+        after = after[t[after] <= t[after[0]] + window_s + 1e-12]
+        ref = float(reproj[after].max())
+        bad = np.flatnonzero(reproj[rows[:k]] > ref)
+        if bad.size:
+            out[rows[: bad[-1] + 1]] = True
+    return out
+
+
+def extrapolate_leads(
+    bub: pd.DataFrame, seg: np.ndarray, lead: np.ndarray, window_s: float
+) -> None:
+    """Centres of each track's ``lead`` rows from the parabola fitted (least squares) to
+    its smoothed centres over its first ``window_s`` seconds after them (at least 3
+    rows), and the velocities of the whole track again ``np.gradient`` of its centres,
+    so that track and velocity still agree; in place. ``bub``: rows ``time_s, x, y, z,
+    vx, vy, vz``, each track's rows in time order."""
+    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
+    for s in np.unique(seg[lead]):
+        rows = np.flatnonzero(seg == s)
+        t = bub["time_s"].to_numpy(np.float64)[rows]
+        p = bub[xyz].to_numpy(np.float64)[rows]
+        first = lead[rows]
+        ref = np.flatnonzero(~first)
+        ref = ref[t[ref] <= t[ref[0]] + window_s + 1e-12]
+        if len(ref) < 3:
+            ref = np.flatnonzero(~first)[:3]
+        t0 = t[ref[0]]
+        coef = np.polyfit(t[ref] - t0, p[ref], 2)  # (3, 3): one parabola per axis
+        tt = t[first] - t0
+        p[first] = np.stack([np.polyval(coef[:, j], tt) for j in range(3)], axis=1)
+        bub.loc[bub.index[rows], xyz] = p
+        bub.loc[bub.index[rows], vel] = np.gradient(p, t, axis=0)
 
 
 def track_segments(

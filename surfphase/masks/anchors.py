@@ -246,6 +246,35 @@ def anchor_table(
     return pd.DataFrame(rows, columns=ANCHOR_COLUMNS)
 
 
+def low_bottoms(
+    table: pd.DataFrame,
+    cameras: Sequence[Camera],
+    labels: Sequence[np.ndarray],
+    frames: np.ndarray,
+    height: float,
+) -> np.ndarray:
+    """(R,) bool: each row of an :func:`anchor_table` whose silhouette bottoms (the
+    lowest row of the bubble's pixels in each of the two views' (T, H, W) ``labels``,
+    at its mean column) triangulate to within ``height`` metres of the plate (lab
+    y = 0). Such a bubble has just left the plate: its silhouette still merges with the
+    plate's image and its centroid is not its centre's projection."""
+    out = np.zeros(len(table), bool)
+    if not len(table):
+        return out
+    pos = {int(f): k for k, f in enumerate(np.asarray(frames, np.int64))}
+    for r, (f, b) in enumerate(zip(table["frame"], table["bubble"], strict=True)):
+        k = pos[int(f)]
+        bottoms = []
+        for lab in labels:
+            ys, xs = np.nonzero(np.asarray(lab[k]) == int(b))
+            if not ys.size:
+                break
+            bottoms.append(np.array([[xs[ys == ys.max()].mean(), float(ys.max())]]))
+        if len(bottoms) == 2:
+            out[r] = bool(triangulate(list(cameras), bottoms)[0, 1] < height)
+    return out
+
+
 def track_speeds(table: pd.DataFrame, fps: float, min_frames: int = 3) -> dict[int, float]:
     """Least-squares speed (m/s) of each bubble's centre over its frames.
 

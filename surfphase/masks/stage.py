@@ -13,7 +13,7 @@ Outputs in ``OUT``:
 * ``instances.csv`` — ``frame, camera, bubble, area, cx, cy, x0, y0, x1, y1, score``
   (pixels; ``score`` is the backend's confidence);
 * ``events.csv`` — ``frame, camera, event, parents, children`` (merge, split, detach);
-* ``anchors.csv`` — ``frame, bubble, x, y, z, reproj_px, size_ratio, cut``: each
+* ``anchors.csv`` — ``frame, bubble, x, y, z, reproj_px, size_ratio, cut, low``: each
   bubble's centre triangulated from its sub-pixel silhouette centroids in the first two
   views (m, lab frame; :mod:`surfphase.masks.anchors`; ``cut``: a view's silhouette was
   cut by its border and its centre is that of the ellipse fitted to the visible
@@ -233,7 +233,15 @@ def frame_anchors(
         cents.append(per)
         cuts.append(per_cut)
     cams = [cameras[c].undistorted() for c in names]
-    return anchors.anchor_table(cams, cents, frames, ap, cuts)
+    table = anchors.anchor_table(cams, cents, frames, ap, cuts)
+    table["low"] = anchors.low_bottoms(
+        table,
+        cams,
+        [labels[c] for c in names],
+        frames,
+        float(params["associate"]["nucleation_height"]),
+    )
+    return table
 
 
 def merged_in_every_view(events: pd.DataFrame, views: Sequence[str]) -> set[int]:
@@ -339,7 +347,7 @@ def _anchor_and_drop(
 
     Returns (instances, consistent anchors, how many pairs dropped, static ids).
     """
-    anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "position"])
+    anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "low", "position"])
     if len(stacks) < 2:
         return instances, anchor_tab, 0, []
     anchor_tab = frame_anchors(stacks, labels, bgs, cameras, frames, p)
@@ -438,6 +446,6 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
     }
     write_masks(
         out_dir, bubble_labels, instances, events,
-        anchor_tab[[k for k in anchors.ANCHOR_COLUMNS if k != "consistent"]],
+        anchor_tab[[*(k for k in anchors.ANCHOR_COLUMNS if k != "consistent"), "low"]],
         overlay_images(ingest.stacks, bubble_labels, p["overlay_frames"]), info,
     )  # fmt: skip
