@@ -233,3 +233,33 @@ def test_track_segments_end_at_a_merge():
     seg = track_segments(table, [0, 0, 1, 1, 2], bub, w)
     assert seg[0] == seg[2] and seg[1] == seg[3] and seg[0] != seg[1]
     assert seg[4] not in (seg[0], seg[1])  # the merged bubble starts a new track
+
+
+def test_a_track_led_by_damaged_low_centres_starts_on_its_parabola():
+    """Rows just off the plate whose views agree worse than the track's next ones take
+    the parabola of the clean rows (analytic truth); a low row that agrees as well is
+    kept as measured."""
+    import pandas as pd
+
+    from surfphase.fit.outputs import extrapolate_leads, lead_rows
+
+    fps, n = 5000.0, 20
+    t = np.arange(n) / fps
+    truth = np.stack([0.01 * t, 0.1 * t + 20.0 * t**2, -0.02 * t + 3.0 * t**2], axis=1)
+    low = np.zeros(n, bool)
+    low[:4] = True
+    reproj = np.full(n, 0.1)
+    reproj[:3] = 0.8  # the first three: a silhouette cut by the plate's image
+    seg = np.zeros(n, np.int64)
+    lead = lead_rows(low, reproj, t, seg, 0.002)
+    assert lead.tolist() == [True] * 3 + [False] * (n - 3)
+    # A track whose low rows agree as well as its next ones: nothing leads it.
+    assert not lead_rows(low, np.full(n, 0.1), t, seg, 0.002).any()
+    tab = pd.DataFrame({"time_s": t})
+    tab[["x", "y", "z"]] = truth + np.where(lead[:, None], 7e-5, 0.0)  # biased up
+    tab[["vx", "vy", "vz"]] = 0.0
+    extrapolate_leads(tab, seg, lead, 0.002)
+    np.testing.assert_allclose(tab[["x", "y", "z"]].to_numpy(), truth, atol=1e-12)
+    vel = np.stack([0.01 + 0 * t, 0.1 + 40.0 * t, -0.02 + 6.0 * t], axis=1)
+    # Central differences of a parabola are exact inside the track.
+    np.testing.assert_allclose(tab[["vx", "vy", "vz"]].to_numpy()[1:-1], vel[1:-1], atol=1e-9)

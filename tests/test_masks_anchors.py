@@ -447,3 +447,22 @@ def test_nucleation_frames_need_every_view():
     a[2, 1, 1] = 0  # one view only
     b[0, 2, 2] = 5  # a bubble, not the nucleation region
     assert nucleation_frames([a, b], np.array([10, 11, 12])) == {11}
+
+
+def test_low_bottoms_triangulates_each_silhouettes_lowest_row():
+    """A bubble whose lowest pixels are the projections of a point 40 µm above the plate
+    is low; one whose lowest pixels project a point 1 mm up is not (heights 0.3 mm)."""
+    import pandas as pd
+    from test_masks_scene import rig
+
+    from surfphase.masks.anchors import low_bottoms
+
+    cams = [c.undistorted() for c in rig(512).values()]
+    labels = [np.full((1, 512, 512), -1, np.int32) for _ in cams]
+    for b, y in ((1, 4e-5), (2, 1e-3)):
+        X = np.array([[0.002 * b - 0.003, y, 0.0]])
+        for cam, lab in zip(cams, labels, strict=True):
+            u, v = np.rint(cam.project(X)[0]).astype(int)
+            lab[0, v - 6 : v + 1, u - 3 : u + 4] = b  # a blob whose lowest row is row v
+    table = pd.DataFrame({"frame": [7, 7], "bubble": [1, 2]})
+    assert low_bottoms(table, cams, labels, np.array([7]), 3e-4).tolist() == [True, False]

@@ -335,13 +335,21 @@ def anchored_table(
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 
 
+#: A low row leads its track when its views disagree this many times more than the
+#: track's next rows at most: damaged silhouettes disagreed by 0.65–0.98 px against
+#: 0.05–0.2 px after them (benchmark session03); sound ones by as little as the rows
+#: after them, give or take their noise (0.01–0.1 px at 10,000 fps).
+LEAD_REPROJ_FACTOR = 2.0
+
+
 def lead_rows(
     low: np.ndarray, reproj: np.ndarray, t: np.ndarray, seg: np.ndarray, window_s: float
 ) -> np.ndarray:
     """(R,) bool: the rows that lead a track (``seg``, rows in time order) with ``low``
-    set (a bubble just off the plate), up to the last of them whose two views agree
-    worse (``reproj``: the anchors' ``reproj_px``) than in every row of the track's
-    next ``window_s`` seconds (``t``: seconds): there the plate's image damaged a
+    set (a bubble just off the plate), up to the last of them whose two views disagree
+    (``reproj``: the anchors' ``reproj_px``) more than :data:`LEAD_REPROJ_FACTOR` times
+    as much as in any row of the track's next ``window_s`` seconds (``t``: seconds):
+    there the plate's image damaged a
     silhouette and its centroid is not its centre's projection. A track with fewer
     than 3 rows after them has none."""
     out = np.zeros(len(seg), bool)
@@ -352,7 +360,7 @@ def lead_rows(
             continue
         after = rows[k:]
         after = after[t[after] <= t[after[0]] + window_s + 1e-12]
-        ref = float(reproj[after].max())
+        ref = LEAD_REPROJ_FACTOR * float(reproj[after].max())
         bad = np.flatnonzero(reproj[rows[:k]] > ref)
         if bad.size:
             out[rows[: bad[-1] + 1]] = True
