@@ -146,22 +146,29 @@ def _overlapping(lab: np.ndarray, t: int, locals_: list[int], mask: np.ndarray) 
     return locals_[k] if counts[k] > 0 else None
 
 
+def _follow(
+    lab: np.ndarray, att_at: Mapping[int, list[int]], start: tuple[int, int], frames: range
+) -> list[tuple[int, int]]:
+    """(frame, local) of the attached instances that continue the instance ``start``
+    over ``frames`` in order, each overlapping the one before; up to the first frame
+    without one."""
+    out = []
+    mask = np.asarray(lab[start[0]]) == start[1]
+    for t in frames:
+        loc = _overlapping(lab, t, att_at.get(t, []), mask)
+        if loc is None:
+            break
+        out.append((t, loc))
+        mask = np.asarray(lab[t]) == loc
+    return out
+
+
 def _walk_back(
     lab: np.ndarray, att_at: Mapping[int, list[int]], first: tuple[int, int]
 ) -> list[tuple[int, int]]:
     """(frame, local) of the attached instances before a track's ``first`` sighting
     that continue it back in time (each overlapping the next one)."""
-    out = []
-    t, loc = first
-    mask = np.asarray(lab[t]) == loc
-    while t > 0:
-        t -= 1
-        prev = _overlapping(lab, t, att_at.get(t, []), mask)
-        if prev is None:
-            break
-        out.append((t, prev))
-        mask = np.asarray(lab[t]) == prev
-    return out
+    return _follow(lab, att_at, first, range(first[0] - 1, -1, -1))
 
 
 def _fill_gaps(
@@ -171,13 +178,7 @@ def _fill_gaps(
     ``seen`` that overlap its sighting before the gap."""
     out = []
     for (ta, la), (tb, _lb) in zip(seen[:-1], seen[1:], strict=True):
-        mask = np.asarray(lab[ta]) == la
-        for t in range(ta + 1, tb):
-            loc = _overlapping(lab, t, att_at.get(t, []), mask)
-            if loc is None:
-                break
-            out.append((t, loc))
-            mask = np.asarray(lab[t]) == loc
+        out += _follow(lab, att_at, (ta, la), range(ta + 1, tb))
     return out
 
 
