@@ -464,5 +464,7 @@ def test_low_bottoms_triangulates_each_silhouettes_lowest_row():
         for cam, lab in zip(cams, labels, strict=True):
             u, v = np.rint(cam.project(X)[0]).astype(int)
             lab[0, v - 6 : v + 1, u - 3 : u + 4] = b  # a blob whose lowest row is row v
-    table = pd.DataFrame({"frame": [7, 7], "bubble": [1, 2]})
+    table = pd.DataFrame({"frame": [7, 7], "bubble": [1, 2]}, index=[5, 3])
     assert low_bottoms(table, cams, labels, np.array([7]), 3e-4).tolist() == [True, False]
+    table = pd.DataFrame({"frame": [7, 7, 7], "bubble": [2, 9, 1]})  # 9: not in the frame
+    assert low_bottoms(table, cams, labels, np.array([7]), 3e-4).tolist() == [False, False, True]

@@ -259,19 +259,28 @@ def low_bottoms(
     y = 0). Such a bubble has just left the plate: its silhouette still merges with the
     plate's image and its centroid is not its centre's projection."""
     out = np.zeros(len(table), bool)
-    if not len(table):
-        return out
     pos = {int(f): k for k, f in enumerate(np.asarray(frames, np.int64))}
-    for r, (f, b) in enumerate(zip(table["frame"], table["bubble"], strict=True)):
-        k = pos[int(f)]
+    rows = pd.DataFrame(
+        {"k": [pos[int(f)] for f in table["frame"]], "b": table["bubble"].to_numpy(np.int64)}
+    )
+    for k, group in rows.groupby("k"):
         bottoms = []
         for lab in labels:
-            ys, xs = np.nonzero(np.asarray(lab[k]) == int(b))
-            if not ys.size:
-                break
-            bottoms.append(np.array([[xs[ys == ys.max()].mean(), float(ys.max())]]))
-        if len(bottoms) == 2:
-            out[r] = bool(triangulate(list(cameras), bottoms)[0, 1] < height)
+            frame = np.asarray(lab[int(k)])
+            boxes = ndi.find_objects(frame + 1)  # box of id b at index b
+            uv = np.full((len(group), 2), np.nan)
+            for i, b in enumerate(group["b"].astype(int)):
+                box = boxes[b] if 0 <= b < len(boxes) else None
+                if box is None:
+                    continue
+                ys, xs = np.nonzero(frame[box] == b)
+                bot = ys.max()
+                uv[i] = (xs[ys == bot].mean() + box[1].start, bot + box[0].start)
+            bottoms.append(uv)
+        ok = np.isfinite(bottoms[0]).all(1) & np.isfinite(bottoms[1]).all(1)
+        if ok.any():
+            y = triangulate(list(cameras), [bottoms[0][ok], bottoms[1][ok]])[:, 1]
+            out[group.index.to_numpy()[ok]] = y < height
     return out
 
 
