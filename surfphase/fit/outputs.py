@@ -349,9 +349,8 @@ def lead_rows(
     set (a bubble just off the plate), up to the last of them whose two views disagree
     (``reproj``: the anchors' ``reproj_px``) more than :data:`LEAD_REPROJ_FACTOR` times
     as much as in any row of the track's next ``window_s`` seconds (``t``: seconds):
-    there the plate's image damaged a
-    silhouette and its centroid is not its centre's projection. A track with fewer
-    than 3 rows after them has none."""
+    there the plate's image damaged a silhouette and its centroid is not its centre's
+    projection. A track with fewer than 3 rows after them has none."""
     out = np.zeros(len(seg), bool)
     for s in np.unique(seg):
         rows = np.flatnonzero(seg == s)

@@ -13,9 +13,9 @@ Instances come from a segmentation backend as per-camera label stacks
 2. **Nucleation region.** A paired instance whose silhouette bottom triangulates to
    within ``nucleation_height`` metres of the heated plate (y = 0) is attached to the
    plate: it belongs to bubble 0, the nucleation region. A bubble that rises out of it
-   slowly in frames is free from the moment the line through its bottom heights over
-   its first frames leaves the plate (:mod:`surfphase.masks.detach`): those attached
-   frames become its own.
+   slowly in frames is free from the knee of the hinge (resting, then rising) fitted to
+   its bottom heights over the attached frames it continues and its first frames
+   (:mod:`surfphase.masks.detach`): the attached frames after the knee become its own.
 3. **Through time, per view.** Free instances are tracked frame to frame: each
    track's mask is shifted by its last displacement (constant velocity) and matched
    to the next frame's instances by mask IoU (Hungarian). A track hidden behind
@@ -227,11 +227,13 @@ def _attached_pairs(
     height: int,
     params: Mapping,
     plates: Mapping[str, np.ndarray] | None = None,
+    heights: np.ndarray | None = None,
 ) -> set[tuple[str, int, int]]:
     """(camera, frame, local) of instances attached to the plate (nucleation region).
 
     Paired instances (with cameras): the silhouette bottoms triangulate to within
-    ``nucleation_height`` of y = 0. Unpaired ones (an attached bubble hidden or
+    ``nucleation_height`` of y = 0 (``heights``: the pairs' :func:`bottom_heights`,
+    computed here when not given). Unpaired ones (an attached bubble hidden or
     fused in the other view), and all of them without cameras: the bottom rests on
     the plate's image when ``plates`` gives it, else on the lowest silhouette bottom
     of the session (within ``nucleation_margin_frac`` of the height).
@@ -252,7 +254,9 @@ def _attached_pairs(
     if cams is not None:
         if len(pairs) == 0:
             return out
-        low = bottom_heights(inst, pairs, cam_a, cam_b, cams) < params["nucleation_height"]
+        if heights is None:
+            heights = bottom_heights(inst, pairs, cam_a, cam_b, cams)
+        low = heights < params["nucleation_height"]
         for (t, la, lb), lw in zip(
             pairs[["frame", "local_a", "local_b"]].itertuples(index=False), low, strict=True
         ):
@@ -310,17 +314,18 @@ def associate(
     inst = pd.concat([instance_table(labels[c], scores[c], c) for c in names], ignore_index=True)
     attached: set[tuple[str, int, int]] = set()
     pairs = pd.DataFrame(columns=["frame", "local_a", "local_b", "cost"])
-    cam_pair = None
+    cam_pair, hts = None, None
     if len(names) >= 2:
         a, b = names[:2]
         if cameras is not None and a in cameras and b in cameras:
             cam_pair = (cameras[a], cameras[b])
         pairs = pair_views(inst, a, b, height, cam_pair, p)
-        attached = _attached_pairs(inst, pairs, a, b, cam_pair, height, p, plates)
+        if cam_pair is not None:
+            hts = bottom_heights(inst, pairs, a, b, cam_pair)
+        attached = _attached_pairs(inst, pairs, a, b, cam_pair, height, p, plates, hts)
     tracks = _track_views(labels, inst, names, attached, p)
     if cam_pair is not None and attached:
         keys = detach.pair_keys(pairs, names[0], names[1])
-        hts = bottom_heights(inst, pairs, names[0], names[1], cam_pair)
         heights = {k: float(h) for (ka, kb), h in zip(keys, hts, strict=True) for k in (ka, kb)}
         partner = {ka: kb for ka, kb in keys} | {kb: ka for ka, kb in keys}
         two = {c: tracks[c] for c in names[:2]}

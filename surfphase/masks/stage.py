@@ -52,6 +52,10 @@ from surfphase.masks.overlay import overlay_frame
 from surfphase.masks.params import DEFAULTS
 from surfphase.settings import check_keys
 
+#: The columns of ``anchors.csv``: :func:`frame_anchors`' table less ``consistent``
+#: (only consistent rows are written).
+ANCHOR_FILE_COLUMNS = [*(k for k in anchors.ANCHOR_COLUMNS if k != "consistent"), "low"]
+
 
 def merge_params(params: Mapping | None) -> dict:
     """:data:`DEFAULTS` updated by ``params`` (one level deep for the nested sections).
@@ -446,6 +450,6 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
     }
     write_masks(
         out_dir, bubble_labels, instances, events,
-        anchor_tab[[*(k for k in anchors.ANCHOR_COLUMNS if k != "consistent"), "low"]],
+        anchor_tab[ANCHOR_FILE_COLUMNS],
         overlay_images(ingest.stacks, bubble_labels, p["overlay_frames"]), info,
     )  # fmt: skip
