@@ -11,11 +11,12 @@ from surfphase.masks import classical
 SS = 4  # supersampling of the drawn truth
 
 
-def shadowgraph(h, w, bubbles, seed=0, noise=0.01, plate_row=None):
+def shadowgraph(h, w, bubbles, seed=0, noise=0.01, plate_row=None, plate_edge=None):
     """Bright uneven backlight, bubbles as dark rings with bright cores.
 
     ``bubbles``: (u, v, r) pixels. With ``plate_row`` a dim static band (the heated
-    plate's top face) fills rows ≥ plate_row and a black band the last rows.
+    plate's top face) fills rows ≥ plate_row and a black band the last rows;
+    ``plate_edge`` ((w,) rows) gives the band's top per column instead.
     Returns the image (float32) and truth labels (pixel-centre coverage ≥ 1/2).
     """
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -27,7 +28,9 @@ def shadowgraph(h, w, bubbles, seed=0, noise=0.01, plate_row=None):
     )
     img = bg.copy()
     if plate_row is not None:
-        img[plate_row:] = 0.26 * bg[plate_row:]
+        plate_edge = np.full(w, float(plate_row))
+    if plate_edge is not None:
+        img = np.where(yy >= np.asarray(plate_edge)[None, :], 0.26 * bg, img)
         img[h - max(2, h // 16) :] = 0.03
     truth = np.full((h, w), -1, np.int32)
     off = (np.arange(SS) + 0.5) / SS - 0.5
@@ -131,6 +134,60 @@ def test_bubble_growing_on_the_plate_is_whole():
         assert labels.max() + 1 == 2
         assert best_iou(truths[t], labels, 0) > 0.8
         assert best_iou(truths[t], labels, 1) > 0.9
+
+
+def test_polyline_edge_keeps_corners_and_drops_dents():
+    """A plate's far edge seen in perspective: two straight pieces meeting in a corner,
+    dented up and down by bubbles sitting on it; against the analytic polyline."""
+    x = np.arange(200.0)
+    truth = np.where(x < 90, 120 + 0.15 * (90 - x), 120 + 0.5 * (x - 90))
+
+    def arc(c: float, r: float) -> np.ndarray:
+        return np.sqrt(np.clip(r * r - (x - c) ** 2, 0, None))
+
+    # Dark rings of bubbles above the edge (arcs up to 2 r above it), one just left of
+    # the corner; a bright core hiding the edge's top rows; columns where no plate is
+    # seen.
+    core = np.minimum(arc(120, 7), 4)
+    edge = np.round(truth - 2 * arc(39, 9) - 2 * arc(80, 6) + core - 2 * arc(166, 6))
+    edge[150:158] = 200
+    clean, on = classical.polyline_edge(edge, 71)
+    dents = (arc(39, 9) > 0.5) | (arc(80, 6) > 0.5) | (core > 1.5) | (arc(166, 6) > 0.5)
+    assert not on[dents].any()
+    assert on[86:95].all()  # the corner and its neighbours are the edge itself
+    keep = (x < 150) | (x >= 172)
+    assert np.abs(clean - truth)[keep].max() <= 1.0
+    assert np.abs(clean - truth)[86:95].max() <= 0.5
+    # A running median of the same width (the former cleaning) cuts the corner.
+    from scipy import ndimage as ndi
+
+    assert np.abs(ndi.median_filter(edge, 71, mode="nearest") - truth)[88:93].min() >= 3
+
+
+def test_plate_corner_stays_plate_beside_a_bubble_sitting_there():
+    """A trapezoid plate's corner, a bubble resting on its edge beside it in every frame:
+    the static region follows the corner, and the bubble's mask takes no plate."""
+    h, w = 128, 160
+    x = np.arange(w) + 0.5
+    plate = np.where(x < 70, 80 + 0.12 * (70 - x), 80 + 0.4 * (x - 70))
+    frames, truths = [], []
+    for t in range(12):
+        img, tr = shadowgraph(
+            h, w, [(63.0, 76.0, 6.0), (120, 50 - 3 * t, 7)], seed=t, plate_edge=plate
+        )
+        frames.append(img)
+        truths.append(tr)
+    stack = np.stack(frames)
+    bg, static = classical.static_background(classical.session_reference(stack))
+    top = np.argmax(static, axis=0)
+    want = np.ceil(plate - 0.5) - 2  # first row whose centre is on the plate, less the rim
+    assert np.abs(top - want).max() <= 1
+    for t in (0, 6, 11):
+        labels, _ = classical.segment_frame(stack[t], None, (bg, static))
+        assert best_iou(truths[t], labels, 0) > 0.75
+        k = np.bincount(labels[truths[t] == 0][labels[truths[t] == 0] >= 0]).argmax()
+        cols = np.flatnonzero((labels == k).any(axis=0))
+        assert cols.max() <= 63 + 6 + 1
 
 
 def _rising_stack(n: int, noise: float, sites=()) -> np.ndarray:

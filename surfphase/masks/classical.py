@@ -25,6 +25,7 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 from scipy import ndimage as ndi
+from scipy.stats import siegelslopes
 from skimage.feature import peak_local_max
 from skimage.filters import apply_hysteresis_threshold
 from skimage.segmentation import watershed
@@ -136,6 +137,63 @@ def session_reference(
     return np.percentile(stack, percentile, axis=0).astype(np.float32)
 
 
+def polyline_edge(
+    edge: np.ndarray, window: int, tol_px: float = 1.0, max_points: int = 96
+) -> tuple[np.ndarray, np.ndarray]:
+    """The static structure's upper edge without the dents of bubbles, corners kept.
+
+    ``edge`` (W,): the edge's row in each column (the image height where a column has
+    none). The plate's far edge, seen in perspective, is a polyline (a trapezoid's
+    corner); a bubble sitting on it dents it, up or down, over less than half of
+    ``window`` columns. A column is *on the edge* when it lies within ``tol_px`` rows of
+    Siegel's repeated-median line (``scipy.stats.siegelslopes``, robust to up to half
+    the points being outliers) of one of three windows of
+    ``window`` columns: ending at it, centred on it, or starting at it. Near a corner
+    one of the one-sided windows lies on one straight piece, so the corner is kept,
+    where a running median would cut it; in a dent no window's line reaches it. Only
+    windows wholly inside the image count, and only those whose line holds more than
+    half of their columns (one across a corner is a compromise between two pieces),
+    and a column is on the edge only with one of its neighbours on the same line. Dented columns take the edge linearly
+    interpolated between the nearest columns on the edge (held constant beyond the
+    outermost). Lines are fitted on at most ``max_points`` columns of a window (evenly
+    spaced).
+
+    Returns ``(cleaned, on_edge)``: (W,) float64 rows and (W,) bool.
+    """
+    y = np.asarray(edge, np.float64)
+    w = y.size
+    n = max(3, min(int(window), w))
+    x = np.arange(w, dtype=np.float64)
+    step = max(1, int(np.ceil(n / max_points)))
+    # Line of each whole window [s, s + n) inside the image (a window cut by the
+    # image's side could be mostly dent); index s + n − 1, so that the windows
+    # ending before column 0 or starting after w − n stay NaN.
+    lines = np.full((w + n - 1, 2), np.nan)
+    for s in range(w - n + 1):
+        idx = np.arange(s, s + n)[::step]
+        a, b = siegelslopes(y[idx], x[idx])
+        # A window across a corner has no line through most of its columns.
+        if np.mean(np.abs(a * x[idx] + b - y[idx]) <= tol_px) > 0.5:
+            lines[s + n - 1] = a, b
+    starts = np.stack([x - n + 1, x - n // 2, x]).astype(int) + n - 1  # (3, W)
+    a, b = lines[starts, 0], lines[starts, 1]
+
+    def near(shift: int) -> np.ndarray:
+        # Whether column u + shift lies on the line of column u's window (3, W).
+        u = np.arange(w) + shift
+        inside = (u >= 0) & (u < w)
+        u = np.clip(u, 0, w - 1)
+        with np.errstate(invalid="ignore"):
+            return (np.abs(a * x[u] + b - y[u]) <= tol_px) & inside
+
+    # On a window's line together with a neighbour: a dent's side may cross the line
+    # of the other piece, extended past the corner, in one column.
+    on = (near(0) & (near(-1) | near(1))).any(axis=0)
+    if not on.any():
+        return y.copy(), on
+    return np.interp(x, x[on], y[on]), on
+
+
 def static_background(
     reference: np.ndarray,
     params: Mapping | None = None,
@@ -152,9 +210,9 @@ def static_background(
     structure entering from the bottom of the view — the heated plate — is the part
     of the reference darker than ``(1 − static_dark_frac)`` × backlight, connected to
     the border and larger than ``static_min_area_frac`` of the image. Its upper edge
-    is taken per column and cleaned by a running median over ``static_notch_frac``
-    of the width (bubbles sitting on the plate, which stay in the reference when
-    nucleation never stops, dent it).
+    is taken per column and cleaned of the dents of bubbles sitting on it (which stay
+    in the reference when nucleation never stops) by :func:`polyline_edge` over
+    windows of ``static_notch_frac`` of the width, within ``static_edge_tol_px``.
     Inside the structure (and two rows above its edge, its blurred rim) the
     background is the reference itself, except where the reference departs from its
     running median *along* the edge by more than ``static_outlier_frac``: there a
@@ -189,13 +247,11 @@ def static_background(
     edge = np.where(has, np.argmax(s0, axis=0), h).astype(np.float64)
     win = max(3, (w // 6) | 1)
     # Bubbles on the plate dent its edge over at most their width, upwards (a dark
-    # ring above the plate) or downwards (a bright core hiding its top rows): a
-    # running median wider than twice the widest bubble removes both.
+    # ring above the plate) or downwards (a bright core hiding its top rows): robust
+    # lines over windows wider than twice the widest bubble remove both and keep the
+    # corners of the plate seen in perspective.
     notch = max(3, int(p["static_notch_frac"] * w) | 1)
-    smooth = np.round(ndi.median_filter(edge, size=notch, mode="nearest"))
-    # Keep the raw edge where it is close above the smoothed one (a corner of the
-    # plate, slightly cut); bubbles on the plate dent it further.
-    edge = np.where((smooth - edge >= 0) & (smooth - edge <= 3), edge, smooth).astype(int)
+    edge = np.round(polyline_edge(edge, notch, float(p["static_edge_tol_px"]))[0]).astype(int)
     # Two rows above the edge too: the blurred rim of the structure.
     edge = np.maximum(edge - 2, 0)
     static = np.arange(h)[:, None] >= edge[None, :]

@@ -29,9 +29,12 @@ CLASSICAL_DEFAULTS: dict = {
     # this fraction in the reference, touching the border, at least this area fraction.
     "static_dark_frac": 0.35,
     "static_min_area_frac": 0.01,
-    # Running-median window along the plate edge, fraction of the image width
-    # (more than twice the widest bubble sitting on the plate).
+    # Window along the plate edge, fraction of the image width (more than twice the
+    # widest bubble sitting on the plate).
     "static_notch_frac": 0.35,
+    # A column of the plate's edge within this many pixels of the robust line of a
+    # window (ending at, centred on or starting at it) is the edge; others are dents.
+    "static_edge_tol_px": 1.0,
     # On the plate, a reference pixel this far (fraction) from the along-edge median
     # is a bubble persisting at a nucleation site, not the plate.
     "static_outlier_frac": 0.25,
