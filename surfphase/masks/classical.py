@@ -150,7 +150,8 @@ def polyline_edge(
     the points being outliers) of one of three windows of
     ``window`` columns: ending at it, centred on it, or starting at it. Near a corner
     one of the one-sided windows lies on one straight piece, so the corner is kept,
-    where a running median would cut it; in a dent no window's line reaches it. Only
+    where a running median would cut it; in a dent no window's line reaches it. A
+    column on the edge takes the value of the nearest line through it. Only
     windows wholly inside the image count, and only those whose line holds more than
     half of their columns (one across a corner is a compromise between two pieces),
     and a column is on the edge only with one of its neighbours on the same line. Dented columns take the edge linearly
@@ -188,10 +189,17 @@ def polyline_edge(
 
     # On a window's line together with a neighbour: a dent's side may cross the line
     # of the other piece, extended past the corner, in one column.
-    on = (near(0) & (near(-1) | near(1))).any(axis=0)
+    ok = near(0) & (near(-1) | near(1))
+    on = ok.any(axis=0)
     if not on.any():
         return y.copy(), on
-    return np.interp(x, x[on], y[on]), on
+    # The value of the nearest line through the column: sub-pixel, where the
+    # staircase of a shallow slope or a slight bow steps by a row (near a corner the
+    # other piece's line, extended, may pass within the tolerance too).
+    pred = a * x + b
+    best = np.argmin(np.where(ok, np.abs(pred - y), np.inf), axis=0)
+    val = np.take_along_axis(pred, best[None], axis=0)[0]
+    return np.interp(x, x[on], val[on]), on
 
 
 def static_background(
