@@ -259,19 +259,27 @@ def static_background(
     # lines over windows wider than twice the widest bubble remove both and keep the
     # corners of the plate seen in perspective.
     notch = max(3, int(p["static_notch_frac"] * w) | 1)
-    edge = np.round(polyline_edge(edge, notch, float(p["static_edge_tol_px"]))[0]).astype(int)
     # Two rows above the edge too: the blurred rim of the structure.
-    edge = np.maximum(edge - 2, 0)
+    top = np.maximum(polyline_edge(edge, notch, float(p["static_edge_tol_px"]))[0] - 2, 0.0)
+    edge = np.round(top).astype(int)
     static = np.arange(h)[:, None] >= edge[None, :]
-    # Unroll the structure along its edge: band[r, u] = ref[edge(u) + r, u].
-    depth = h - int(edge.min())
-    vv = edge[None, :] + np.arange(depth)[:, None]
-    valid = vv < h
-    uu = np.broadcast_to(np.arange(w)[None, :], vv.shape)
+    # Unroll the structure along its sub-pixel edge: band[r, u] = ref[top(u) + r, u],
+    # linear between rows. In the blurred rim one row is a third of the plate's
+    # brightness: rows of the band that followed the edge's staircase to the nearest
+    # pixel would mix offsets in the along-edge medians below.
+    depth = h - int(np.floor(top.min()))
+    vf = top[None, :] + np.arange(depth)[:, None]
+    valid = vf <= h - 1
+    v0 = np.minimum(np.floor(vf).astype(int), h - 1)
+    v1 = np.minimum(v0 + 1, h - 1)
+    frac = np.clip(vf - v0, 0.0, 1.0)
+    uu = np.broadcast_to(np.arange(w)[None, :], vf.shape)
     pref = ref if plate_reference is None else _polarised(plate_reference, p)
-    band = np.where(valid, pref[np.minimum(vv, h - 1), uu], np.nan)
+    sampled = np.where(valid, (1 - frac) * pref[v0, uu] + frac * pref[v1, uu], np.nan)
+    band = sampled
     if plate_unknown is not None:
-        band = _fill_along_rows(band, valid & plate_unknown[np.minimum(vv, h - 1), uu])
+        unknown = plate_unknown[v0, uu] | (plate_unknown[v1, uu] & (frac > 0))
+        band = _fill_along_rows(band, valid & unknown)
     padded = np.pad(band, ((0, 0), (win // 2, win // 2)), constant_values=np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(padded, win, axis=1)
     with warnings.catch_warnings():
@@ -297,9 +305,16 @@ def static_background(
         keep |= ndi.binary_fill_holes(np.isin(out_lab, cored)) & ~keep
         outlier = (outlier & np.isin(out_lab, touching)) | (keep & ~np.isin(out_lab, touching))
     outlier = ndi.binary_dilation(outlier, np.ones((3, 3), bool))
-    band_bg = np.where(outlier, med, band)
-    bg = light.copy()
-    bg[vv[valid], uu[valid]] = band_bg[valid]
+    # What the along-edge medians and the fill changed, back on the pixel grid: the
+    # background is the reference plus that change, exactly the reference elsewhere.
+    change = np.where(valid, np.where(outlier, med, band) - sampled, 0.0)
+    rf = np.arange(h)[:, None] - top[None, :]
+    r0 = np.clip(np.floor(rf).astype(int), 0, depth - 1)
+    r1 = np.minimum(r0 + 1, depth - 1)
+    s = np.clip(rf - r0, 0.0, 1.0)
+    cols = np.broadcast_to(np.arange(w)[None, :], (h, w))
+    moved = (1 - s) * change[r0, cols] + s * change[r1, cols]
+    bg = np.where(static, pref + moved, light)
     return bg.astype(np.float32), static
 
 
