@@ -157,7 +157,7 @@ def test_polyline_edge_keeps_corners_and_drops_dents():
     core = np.minimum(arc(120, 7), 4)
     edge = np.round(truth - 2 * arc(39, 9) - 2 * arc(80, 6) + core - 2 * arc(166, 6))
     edge[150:158] = 200
-    clean, on = classical.polyline_edge(edge, 71)
+    clean, on = classical.polyline_edge(edge, 71, CLASSICAL_DEFAULTS["static_edge_tol_px"])
     dents = (arc(39, 9) > 0.5) | (arc(80, 6) > 0.5) | (core > 1.5) | (arc(166, 6) > 0.5)
     assert not on[dents].any()
     assert on[86:95].all()  # the corner and its neighbours are the edge itself

@@ -138,26 +138,25 @@ def session_reference(
 
 
 def polyline_edge(
-    edge: np.ndarray, window: int, tol_px: float = 1.0, max_points: int = 96
+    edge: np.ndarray, window: int, tol_px: float, max_points: int = 96
 ) -> tuple[np.ndarray, np.ndarray]:
     """The static structure's upper edge without the dents of bubbles, corners kept.
 
     ``edge`` (W,): the edge's row in each column (the image height where a column has
     none). The plate's far edge, seen in perspective, is a polyline (a trapezoid's
     corner); a bubble sitting on it dents it, up or down, over less than half of
-    ``window`` columns. A column is *on the edge* when it lies within ``tol_px`` rows of
-    Siegel's repeated-median line (``scipy.stats.siegelslopes``, robust to up to half
-    the points being outliers) of one of three windows of
-    ``window`` columns: ending at it, centred on it, or starting at it. Near a corner
-    one of the one-sided windows lies on one straight piece, so the corner is kept,
-    where a running median would cut it; in a dent no window's line reaches it. A
-    column on the edge takes the value of the nearest line through it. Only
-    windows wholly inside the image count, and only those whose line holds more than
-    half of their columns (one across a corner is a compromise between two pieces),
-    and a column is on the edge only with one of its neighbours on the same line. Dented columns take the edge linearly
-    interpolated between the nearest columns on the edge (held constant beyond the
-    outermost). Lines are fitted on at most ``max_points`` columns of a window (evenly
-    spaced).
+    ``window`` columns. A column is *on the edge* when it lies within ``tol_px`` rows
+    of Siegel's repeated-median line (``scipy.stats.siegelslopes``, robust to up to
+    half the points being outliers) of one of three windows of ``window`` columns:
+    ending at it, centred on it, or starting at it, together with one of its
+    neighbours. Near a corner one of the one-sided windows lies on one straight
+    piece, so the corner is kept, where a running median would cut it; in a dent no
+    window's line reaches it. Only windows wholly inside the image count, and only
+    those whose line holds more than half of their columns (one across a corner is a
+    compromise between two pieces). A column on the edge takes the value of the
+    nearest line through it; dented columns take the edge linearly interpolated
+    between the nearest columns on the edge (held constant beyond the outermost).
+    Lines are fitted on at most ``max_points`` columns of a window (evenly spaced).
 
     Returns ``(cleaned, on_edge)``: (W,) float64 rows and (W,) bool.
     """
