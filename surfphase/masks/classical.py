@@ -101,15 +101,17 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
     return bg.astype(np.float32)
 
 
-def inpaint_unknown(image: np.ndarray, unknown: np.ndarray, radius_px: float = 3.0) -> np.ndarray:
-    """(H, W) float32 ``image`` with its ``unknown`` ((H, W) bool) pixels filled from the
-    known ones around them by Navier–Stokes inpainting (``cv2.inpaint``, ``INPAINT_NS``,
-    neighbourhood ``radius_px``), which carries the image's isophotes into the hole: the
-    blurred rim of the plate's edge is continued along the edge wherever it runs,
-    with no estimate of its position."""
-    img = np.ascontiguousarray(image, dtype=np.float32)
-    mask = np.ascontiguousarray(unknown, dtype=np.uint8)
-    return cv2.inpaint(img, mask, float(radius_px), cv2.INPAINT_NS)
+def _fill_along_rows(band: np.ndarray, unknown: np.ndarray) -> np.ndarray:
+    """``band`` (R, W) with its ``unknown`` ((R, W) bool) entries linearly interpolated
+    along each row from the row's other finite entries (the nearest one beyond the
+    last); a row with none keeps them."""
+    out = np.array(band, np.float64)
+    for r in np.flatnonzero(unknown.any(axis=1)):
+        known = np.isfinite(out[r]) & ~unknown[r]
+        if known.any():
+            u = np.flatnonzero(known)
+            out[r, unknown[r]] = np.interp(np.flatnonzero(unknown[r]), u, out[r, u])
+    return out
 
 
 def reference_frames(n: int, max_frames: int) -> np.ndarray:
@@ -223,8 +225,8 @@ def static_background(
     running median *along* the edge by more than ``static_outlier_frac``: there a
     bubble sat at a nucleation site all along, and the median replaces it.
     ``plate_unknown`` ((H, W) bool): plate pixels whose value ``plate_reference`` does
-    not know (covered in nearly every frame); those on the structure are inpainted
-    from the known ones around them (:func:`inpaint_unknown`).
+    not know (covered in nearly every frame); each is interpolated along the edge from
+    the known ones at the same depth below it.
 
     Returns ``background`` (H, W) float32 (polarity applied) and ``static`` (H, W) bool.
     """
@@ -272,10 +274,11 @@ def static_background(
     frac = np.clip(vf - v0, 0.0, 1.0)
     uu = np.broadcast_to(np.arange(w)[None, :], vf.shape)
     pref = ref if plate_reference is None else _polarised(plate_reference, p)
-    if plate_unknown is not None and plate_unknown.any():
-        pref = inpaint_unknown(pref, plate_unknown & static)
     sampled = np.where(valid, (1 - frac) * pref[v0, uu] + frac * pref[v1, uu], np.nan)
     band = sampled
+    if plate_unknown is not None:
+        unknown = plate_unknown[v0, uu] | (plate_unknown[v1, uu] & (frac > 0))
+        band = _fill_along_rows(band, valid & unknown)
     padded = np.pad(band, ((0, 0), (win // 2, win // 2)), constant_values=np.nan)
     windows = np.lib.stride_tricks.sliding_window_view(padded, win, axis=1)
     with warnings.catch_warnings():
