@@ -155,7 +155,9 @@ def polyline_edge(
     those whose line holds more than half of their columns (one across a corner is a
     compromise between two pieces). A column on the edge takes the value of the
     nearest line through it; dented columns take the edge linearly interpolated
-    between the nearest columns on the edge (held constant beyond the outermost).
+    between the nearest columns on the edge (held constant beyond the outermost), or
+    the higher of those two columns' lines extended under the dent where that is
+    above the chord (a corner the dent hides: the plate's top face is convex).
     Lines are fitted on at most ``max_points`` columns of a window (evenly spaced).
 
     Returns ``(cleaned, on_edge)``: (W,) float64 rows and (W,) bool.
@@ -198,7 +200,20 @@ def polyline_edge(
     pred = a * x + b
     best = np.argmin(np.where(ok, np.abs(pred - y), np.inf), axis=0)
     val = np.take_along_axis(pred, best[None], axis=0)[0]
-    return np.interp(x, x[on], val[on]), on
+    out = np.interp(x, x[on], val[on])
+    # A dent between two columns on the edge: the plate's top face projects to a convex
+    # polygon, whose upper boundary (rows grow downwards) is the maximum of its pieces'
+    # lines and lies on or above the chord. So the lines of the columns either side,
+    # extended under the dent, give back a corner hidden there; the chord bounds them.
+    la = np.take_along_axis(a, best[None], axis=0)[0]
+    lb = np.take_along_axis(b, best[None], axis=0)[0]
+    idx = np.flatnonzero(on)
+    for i0, i1 in zip(idx[:-1], idx[1:], strict=True):
+        if i1 - i0 > 1:
+            u = x[i0 + 1 : i1]
+            ext = np.maximum(la[i0] * u + lb[i0], la[i1] * u + lb[i1])
+            out[i0 + 1 : i1] = np.minimum(out[i0 + 1 : i1], ext)
+    return out, on
 
 
 def static_background(
