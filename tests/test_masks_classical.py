@@ -167,6 +167,20 @@ def test_polyline_edge_keeps_corners_and_drops_dents():
     assert np.abs(ndi.median_filter(edge, 71, mode="nearest") - truth)[88:93].min() >= 3
 
 
+def test_polyline_edge_gives_back_a_corner_a_bubble_hides():
+    """A ring sitting on the corner itself: the corner is under the dent, and the two
+    pieces' lines extended under it meet there (the chord cuts it by 2.5 rows)."""
+    x = np.arange(200.0)
+    truth = np.where(x < 90, 120 + 0.15 * (90 - x), 120 + 0.5 * (x - 90))
+    ring = 2 * np.sqrt(np.clip(64 - (x - 90) ** 2, 0, None))
+    edge = np.round(truth - ring)
+    clean, on = classical.polyline_edge(edge, 71, CLASSICAL_DEFAULTS["static_edge_tol_px"])
+    assert not on[ring > 0.5].any()
+    assert np.abs(clean - truth).max() <= 0.5
+    chord = np.interp(x, x[on], edge[on])
+    assert (chord - truth)[90] > 2
+
+
 def test_plate_corner_stays_plate_beside_a_bubble_sitting_there():
     """A trapezoid plate's corner, a bubble resting on its edge beside it in every frame:
     the static region follows the corner, and the bubble's mask takes no plate."""
