@@ -137,6 +137,14 @@ def session_reference(
     return np.percentile(stack, percentile, axis=0).astype(np.float32)
 
 
+def _row_weights(rows: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Linear interpolation between the rows of an n-row table at fractional ``rows``
+    (any shape): ``(r0, r1, f)``, value = (1 − f)·T[r0] + f·T[r1], clamped to rows
+    0 … n − 1."""
+    r0 = np.clip(np.floor(rows).astype(int), 0, n - 1)
+    return r0, np.minimum(r0 + 1, n - 1), np.clip(rows - r0, 0.0, 1.0)
+
+
 def polyline_edge(
     edge: np.ndarray, window: int, tol_px: float, max_points: int = 96
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -197,16 +205,14 @@ def polyline_edge(
     # The value of the nearest line through the column: sub-pixel, where the
     # staircase of a shallow slope or a slight bow steps by a row (near a corner the
     # other piece's line, extended, may pass within the tolerance too).
-    pred = a * x + b
-    best = np.argmin(np.where(ok, np.abs(pred - y), np.inf), axis=0)
-    val = np.take_along_axis(pred, best[None], axis=0)[0]
-    out = np.interp(x, x[on], val[on])
+    best = np.argmin(np.where(ok, np.abs(a * x + b - y), np.inf), axis=0)
+    la = np.take_along_axis(a, best[None], axis=0)[0]
+    lb = np.take_along_axis(b, best[None], axis=0)[0]
+    out = np.interp(x, x[on], (la * x + lb)[on])
     # A dent between two columns on the edge: the plate's top face projects to a convex
     # polygon, whose upper boundary (rows grow downwards) is the maximum of its pieces'
     # lines and lies on or above the chord. So the lines of the columns either side,
     # extended under the dent, give back a corner hidden there; the chord bounds them.
-    la = np.take_along_axis(a, best[None], axis=0)[0]
-    lb = np.take_along_axis(b, best[None], axis=0)[0]
     idx = np.flatnonzero(on)
     for i0, i1 in zip(idx[:-1], idx[1:], strict=True):
         if i1 - i0 > 1:
@@ -284,9 +290,7 @@ def static_background(
     depth = h - int(np.floor(top.min()))
     vf = top[None, :] + np.arange(depth)[:, None]
     valid = vf <= h - 1
-    v0 = np.minimum(np.floor(vf).astype(int), h - 1)
-    v1 = np.minimum(v0 + 1, h - 1)
-    frac = np.clip(vf - v0, 0.0, 1.0)
+    v0, v1, frac = _row_weights(vf, h)
     uu = np.broadcast_to(np.arange(w)[None, :], vf.shape)
     pref = ref if plate_reference is None else _polarised(plate_reference, p)
     sampled = np.where(valid, (1 - frac) * pref[v0, uu] + frac * pref[v1, uu], np.nan)
@@ -322,10 +326,7 @@ def static_background(
     # What the along-edge medians and the fill changed, back on the pixel grid: the
     # background is the reference plus that change, exactly the reference elsewhere.
     change = np.where(valid, np.where(outlier, med, band) - sampled, 0.0)
-    rf = np.arange(h)[:, None] - top[None, :]
-    r0 = np.clip(np.floor(rf).astype(int), 0, depth - 1)
-    r1 = np.minimum(r0 + 1, depth - 1)
-    s = np.clip(rf - r0, 0.0, 1.0)
+    r0, r1, s = _row_weights(np.arange(h)[:, None] - top[None, :], depth)
     cols = np.broadcast_to(np.arange(w)[None, :], (h, w))
     moved = (1 - s) * change[r0, cols] + s * change[r1, cols]
     bg = np.where(static, pref + moved, light)
