@@ -178,6 +178,11 @@ def test_mesh_volume_matches_equivalent_radii(tiny):
 
 
 def test_merge_ids(tiny):
+    """Parents end and the merged bubble starts at the merge's frame; there its vapour
+    is one body: its truth mask is one connected region in every view (a merge dated at
+    the nominal spheres' contact left two oblate lobes apart in the images)."""
+    from scipy import ndimage as ndi
+
     gt = tiny / "session01" / "gt"
     merges = pd.read_csv(gt / "merges.csv")
     assert len(merges) >= 1
@@ -186,6 +191,29 @@ def test_merge_ids(tiny):
         for parent in (m.parent_a, m.parent_b):
             assert df[(df.bubble == parent) & (df.frame >= m.frame)].empty
         assert df[df.bubble == m.merged].frame.min() == m.frame
+        for path in sorted((gt / "masks").glob("*.npy")):
+            mask = np.load(path, mmap_mode="r")[int(m.frame)] == m.merged
+            if mask.any():
+                assert ndi.label(mask, np.ones((3, 3), bool))[1] == 1, (path.name, m.frame)
+
+
+@pytest.mark.parametrize("seed", [11, 3])
+def test_merges_happen_when_the_surfaces_touch(seed):
+    """At each merge time the two lobes of the merged bubble (the parents, shape modes
+    and all) are one body: the scene's field (the renderer's, an independent
+    evaluation) is negative all along the segment between their centres; one contact
+    step earlier the parents' surfaces were apart (``surface_gap`` > 0)."""
+    from surfphase.synth.bubbles import CONTACT_DT, surface_gap
+
+    scene = BubbleScene(seed, 24 / 1500, bubbles=5, force_merge=True)
+    merges = scene.merges()
+    assert merges
+    for tm, pa, pb, child in merges:
+        lobes, _ = scene.by_id[child].lobes(tm)
+        (c0, *_), (c1, *_) = lobes
+        line = c0[None] + np.linspace(0, 1, 201)[:, None] * (c1 - c0)[None]
+        assert scene.state(tm).sdf(line).max() < 0, (tm, pa, pb)
+        assert surface_gap(scene.by_id[pa], scene.by_id[pb], tm - CONTACT_DT) > 0
 
 
 def _march_first_label(state, origin, dirs, step=4e-6):

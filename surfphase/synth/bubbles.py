@@ -19,7 +19,9 @@ Life cycle of a bubble (one :class:`Bubble`):
   (Legendre P2 about the vertical — elongated while attached, oblate while rising —
   P2 about a tilted axis, and P3), oscillating at the Lamb frequency of mode ``l``
   of a bubble in saturated water (≈ 150 Hz for l = 2, R = 1 mm: 10 frames at 1500 fps);
-* **merge**: when two bubbles' nominal spheres touch at ``t_m``, both end and a
+* **merge**: when two bubbles' surfaces touch at ``t_m`` (:func:`surface_gap`, shape
+  modes included: two oblate bubbles one above the other touch later than their
+  nominal spheres would), both end and a
   new bubble is born there with their summed nominal volume and their
   volume-weighted centre and velocity; for :data:`COALESCE` seconds it is the smooth
   union of two lobes sliding into one sphere, then it oscillates strongly.
@@ -50,7 +52,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from surfphase.synth.field import K_SCENE, MODE_DEGREES, FrameState
+from surfphase.synth.field import K_SCENE, MODE_DEGREES, FrameState, mode_delta
 
 #: Surface tension (N/m) and liquid density (kg/m³) of saturated water at 100 °C.
 SIGMA, RHO_L, G = 0.0589, 958.4, 9.81
@@ -66,6 +68,9 @@ WARMUP = 0.16
 Y_EXIT = 0.0175
 #: Time step of the merge (contact) search, seconds.
 CONTACT_DT = 1.0e-4
+#: The contact search looks where two bubbles' nominal spheres are less than this
+#: fraction of their summed radii apart.
+CONTACT_SEARCH = 0.5
 #: Shapes of :class:`BubbleScene` (see its ``shape`` argument).
 SHAPES = ("default", "sphere", "spheroid", "tilted")
 #: Range of the tilt (degrees off the vertical) of a ``"tilted"`` bubble's axis.
@@ -361,14 +366,20 @@ class BubbleScene:
         return np.arange(-WARMUP - 0.05, self.duration + CONTACT_DT, CONTACT_DT)
 
     def _contact_time(self, a: Bubble, b: Bubble, times: np.ndarray) -> float:
-        """First sampled time (s) at which the nominal spheres of ``a`` and ``b`` touch."""
+        """First sampled time (s) at which the surfaces of ``a`` and ``b`` touch
+        (:func:`surface_gap` ≤ 0), searched where their nominal spheres are less than
+        :data:`CONTACT_SEARCH` of their summed radii apart (the shape modes change a
+        radius by less than that)."""
         lo, hi = max(a.t_birth, b.t_birth), min(a.t_end, b.t_end, self.duration)
         ts = times[(times >= lo) & (times < hi)]
         if ts.size == 0:
             return np.inf
-        gap = np.linalg.norm(a.center(ts) - b.center(ts), axis=1) - a.radius(ts) - b.radius(ts)
-        hit = np.flatnonzero(gap <= 0)
-        return float(ts[hit[0]]) if hit.size else np.inf
+        ra, rb = a.radius(ts), b.radius(ts)
+        gap = np.linalg.norm(a.center(ts) - b.center(ts), axis=1) - ra - rb
+        for i in np.flatnonzero(gap <= CONTACT_SEARCH * (ra + rb)):
+            if surface_gap(a, b, float(ts[i])) <= 0:
+                return float(ts[i])
+        return np.inf
 
     def _exit_time(self, b: Bubble, times: np.ndarray) -> float:
         ts = times[times >= b.t_birth]
@@ -381,8 +392,8 @@ class BubbleScene:
         """Make a trailing bubble rise in its leader's wake and catch it inside the clip.
 
         The follower grows twice as fast, accelerates sooner and rises 1.4× faster
-        (wake entrainment); its birth time is chosen so that the nominal spheres
-        touch at a time in the middle of the clip, after the follower has detached.
+        (wake entrainment); its birth time is chosen so that their surfaces touch at a
+        time in the middle of the clip, after the follower has detached.
         Returns False (scene unchanged) when no leader/follower pair allows it.
         """
         times = self._times()
@@ -541,6 +552,24 @@ class BubbleScene:
     def scene_sdf(self, points: np.ndarray, t: float) -> np.ndarray:
         """(N, 3) points (m) at time ``t`` (s) → (N,) signed distance bound (m)."""
         return self.state(t).sdf(points)
+
+
+def surface_gap(a: Bubble, b: Bubble, t: float) -> float:
+    """Gap (m; < 0: they overlap) between the surfaces of ``a`` and ``b`` at time ``t``
+    (s), along the line between each pair of their lobes' centres: the centres'
+    distance less each lobe's radius ``R·(1 + δ)`` towards the other (shape modes
+    included), the least over the lobe pairs. Exact for spheres; for the near-spherical
+    lobes here the nearest points lie close to that line."""
+    out = np.inf
+    for ca, ra, axa, ama in a.lobes(t)[0]:
+        for cb, rb, axb, amb in b.lobes(t)[0]:
+            d = np.asarray(cb, np.float64) - np.asarray(ca, np.float64)
+            dist = float(np.linalg.norm(d))
+            u = d / max(dist, 1e-12)
+            reach_a = ra * (1 + float(mode_delta(axa @ u, ama)))
+            reach_b = rb * (1 + float(mode_delta(axb @ -u, amb)))
+            out = min(out, dist - reach_a - reach_b)
+    return out
 
 
 def _set_detach_velocity(b: Bubble) -> None:

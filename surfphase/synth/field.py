@@ -17,6 +17,22 @@ K_SCENE = 1.5e-4
 MODE_DEGREES = (2, 2, 3)
 
 
+def mode_delta(cos: np.ndarray, amps: np.ndarray) -> np.ndarray:
+    """Relative radius change ``Σ a_m P_l(cos γ_m)`` of a lobe's shape modes.
+
+    Args:
+        cos: (..., 3) cosine of the angle between the direction and each mode's axis.
+        amps: (..., 3) the modes' amplitudes (degrees :data:`MODE_DEGREES`).
+
+    Returns:
+        (...,) δ: the lobe's radius in that direction is ``R·(1 + δ)``.
+    """
+    c, a = np.asarray(cos), np.asarray(amps)
+    c2 = c * c
+    out = (1.5 * c2[..., 0] - 0.5) * a[..., 0] + (1.5 * c2[..., 1] - 0.5) * a[..., 1]
+    return out + (2.5 * c2[..., 2] - 1.5) * c[..., 2] * a[..., 2]
+
+
 def smin(a: np.ndarray, b: np.ndarray, k: float) -> np.ndarray:
     """Polynomial smooth minimum of width ``k`` (m); exactly ``min`` when ``k = 0``."""
     if k <= 0:
@@ -101,11 +117,7 @@ class FrameState:
             dl = p[sel] - self.centers[li]  # (S, 3)
             r = np.sqrt((dl * dl).sum(axis=1))
             c = (dl @ self.axes[li].T) / np.maximum(r, 1e-12)[:, None]  # (S, 3) cos γ
-            c2 = c * c
-            a = self.amps[li]  # MODE_DEGREES = (2, 2, 3): P2, P2, P3
-            delta = (1.5 * c2[:, 0] - 0.5) * a[0] + (1.5 * c2[:, 1] - 0.5) * a[1]
-            delta += (2.5 * c2[:, 2] - 1.5) * c[:, 2] * a[2]
-            d_lobe[sel, li] = r - self.radii[li] * (1 + delta)
+            d_lobe[sel, li] = r - self.radii[li] * (1 + mode_delta(c, self.amps[li]))
         if nl == nb and np.array_equal(self.lobe_bubble, np.arange(nb)):  # one lobe each
             return d_lobe
         out = np.full((n, nb), np.inf)
