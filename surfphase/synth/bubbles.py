@@ -561,8 +561,9 @@ def surface_gap(a: Bubble, b: Bubble, t: float) -> float:
     included), the least over the lobe pairs. Exact for spheres; for the near-spherical
     lobes here the nearest points lie close to that line."""
     out = np.inf
+    lobes_b = b.lobes(t)[0]
     for ca, ra, axa, ama in a.lobes(t)[0]:
-        for cb, rb, axb, amb in b.lobes(t)[0]:
+        for cb, rb, axb, amb in lobes_b:
             d = np.asarray(cb, np.float64) - np.asarray(ca, np.float64)
             dist = float(np.linalg.norm(d))
             u = d / max(dist, 1e-12)
