@@ -110,6 +110,15 @@ def test_bad_inputs_raise_clear_errors(tmp_path):
         load_prior(tmp_path)
 
 
+def test_train_prior_refuses_no_samples_before_training(tmp_path, capsys):
+    """``--samples 0`` once failed in the sample grid after the whole training."""
+    with pytest.raises(SystemExit):
+        main(["train-prior", "--clips", str(tmp_path), "--out", str(tmp_path / "p"),
+              "--samples", "0"])  # fmt: skip
+    assert "--samples: must be at least 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "p").exists()
+
+
 def test_commands_train_prior_and_refine(tmp_path, capsys):
     clips = tmp_path / "clips"
     for k in range(2):

@@ -42,7 +42,9 @@ def register(subparsers) -> None:
     )
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
     p.add_argument("--device", default="cpu", help="auto, cpu or cuda (default cpu)")
-    p.add_argument("--samples", type=int, default=4, help="videos in samples.png (default 4)")
+    p.add_argument(
+        "--samples", type=_at_least_one, default=4, help="videos in samples.png (default 4, ≥ 1)"
+    )
     p.set_defaults(func=_train)
 
     r = subparsers.add_parser(
@@ -68,6 +70,14 @@ def register(subparsers) -> None:
     r.add_argument("--device", default="cpu", help="auto, cpu or cuda (default cpu)")
     r.add_argument("--bit-depth", type=int, default=8, choices=[8, 16], help="PNG bit depth")
     r.set_defaults(func=_refine)
+
+
+def _at_least_one(text: str) -> int:
+    """argparse type: an integer ≥ 1."""
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {n}")
+    return n
 
 
 def sample_grid(real: list[np.ndarray], samples: np.ndarray, gap: int = 2) -> np.ndarray:
