@@ -287,3 +287,52 @@ def test_a_merge_missed_by_one_view_is_made_there_at_the_same_frame():
     assert [e for e in out["cam1"].events if e[1] == "merge"] == [(4, "merge", [0, 1], [m1])]
     assert [e for e in out["cam0"].events if e[1] == "merge"] == [(4, "merge", [0, 1], [2])]
     assert t1.track_of[(5, 0)] == 0 and t1.events == []  # the inputs are left alone
+
+
+def _approaching_pair(n: int = 14, size: int = 72) -> dict[str, np.ndarray]:
+    """Two disks (radius 8 px) approaching at 1 px per frame, drawn by hand.
+
+    Centroid distance ``D``: 24 − t px. From frame 6 (D 18, a 2 px gap) a film joins
+    the silhouettes, cut apart along the middle row (touching instances, as a
+    segmenter gives two bubbles about to touch); the approach goes on as before. From
+    frame 9 the lobes slide together faster (D 13, then 10), and from frame 11 each
+    view shows one blob. Returns ``{view: (n, size, size) int32}``.
+    """
+    dist = {t: 24 - t for t in range(9)} | {9: 13, 10: 10}
+    out = {}
+    rows, cols = np.arange(size)[:, None], np.arange(size)[None, :]
+    for view, x_off in (("cam0", 0), ("cam1", 6)):
+        lab = np.full((n, size, size), -1, np.int32)
+        for t in range(n):
+            ya, xa, d = 30 - t, 28 + x_off, dist.get(t, 0)
+            union = _disk(size, size, ya, xa, 8) | _disk(size, size, ya + d, xa, 8)
+            if t >= 11:
+                lab[t][union] = 0
+                continue
+            if t >= 6:  # the film (then the neck) between the silhouettes
+                union |= (rows >= ya) & (rows <= ya + d) & (abs(cols - xa) <= 1)
+            lab[t][union & (2 * rows <= 2 * ya + d)] = 0
+            lab[t][union & (2 * rows > 2 * ya + d)] = 1
+        out[view] = lab
+    return out
+
+
+@pytest.mark.parametrize(("departure", "merge_frame"), [(0.02, 8), (10.0, 6)])
+def test_bubbles_approaching_as_touching_lobes_merge_when_the_approach_speeds_up(
+    departure, merge_frame
+):
+    """Touching silhouettes alone date the merge at frame 6 (10 ms of look-back at
+    1000 fps reaches it); the steady approach through frames 6–8 dates it one frame
+    before the lobes leave that trend (frame 9). With a departure threshold of
+    10 × the radii nothing departs, and the look-back alone decides."""
+    labels = _approaching_pair()
+    scores = {c: [np.ones(int(f.max()) + 1) for f in lab] for c, lab in labels.items()}
+    params = {"merge_lobe_s": 0.01, "merge_departure": departure}
+    out, _, events = associate(labels, scores, None, params, plates=_no_plate(labels), fps=1000)
+    ids = {c: _blob_ids(out[c]) for c in out}
+    before, merged = ids["cam0"][0], ids["cam0"][-1]
+    assert len(before) == 2 and len(merged) == 1 and not merged & before
+    for c in out:
+        assert all(ids[c][t] == before for t in range(merge_frame)), (c, ids[c])
+        assert all(ids[c][t] == merged for t in range(merge_frame, 14)), (c, ids[c])
+    assert set(events[events.event == "merge"].frame) == {merge_frame}

@@ -472,15 +472,18 @@ def _bench_campaign(work: Path, campaign, seed: int, sessions, frames, log) -> P
 
 
 def _run_sessions(run_dir: Path, names: Sequence[str], cores: int, log) -> None:
-    """The workflow through ``evaluate``, one session at a time, so that a run stopped
-    early leaves whole sessions."""
-    for s in names:
+    """The workflow through ``evaluate``, ``cores`` sessions at a time (one thread per
+    job, the campaign default: one session per core), so that a run stopped early
+    leaves whole sessions."""
+    for i in range(0, len(names), max(1, cores)):
+        group = list(names[i : i + max(1, cores)])
         cmd = [sys.executable, "-m", "surfphase", "run", "--campaign", str(run_dir)]
-        cmd += ["--cores", str(cores), "--session", s, "evaluate"]
+        cmd += ["--cores", str(cores), "--session", ",".join(group), "evaluate"]
         log("running: " + " ".join(cmd))
         rc = subprocess.call(cmd, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         if rc:
-            log(f"session {s}: the workflow exited with {rc}; it has no figures")
+            log(f"sessions {', '.join(group)}: the workflow exited with {rc}; a session "
+                "without its evaluation has no figures")  # fmt: skip
 
 
 def _native_baselines(names, sheet: pd.DataFrame, res: Path, work: Path, cfg: dict, log) -> dict:

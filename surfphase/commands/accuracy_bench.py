@@ -32,7 +32,10 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--sessions", type=int, help="only the first N sessions")
     p.add_argument("--frames", type=int, help="frames per session (when generating)")
     p.add_argument("--seed", type=int, default=0, help="synth seed (when generating)")
-    p.add_argument("--cores", type=int, default=2, help="CPU cores for the workflow")
+    p.add_argument(
+        "--cores", type=int, default=2,
+        help="CPU cores for the workflow (this many sessions run at once, one thread per job)",
+    )  # fmt: skip
     p.add_argument(
         "--set",
         action="append",

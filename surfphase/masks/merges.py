@@ -111,7 +111,11 @@ def reconcile_merges(
     * the merge is then dated back over up to ``merge_lobe_s`` seconds
       (:func:`lobe_frames` at ``fps``) of frames in which
       the parents' silhouettes touch in every view and are cut apart in at least
-      one: the two lobes of a bubble that already merged.
+      one: the two lobes of a bubble that already merged;
+    * but not before the frame before the lobes' centroid distance, in a view, departs
+      from its straight-line trend (``merge_trend_frames``, ``merge_departure``): two
+      bubbles about to touch also show as touching lobes (the liquid film between them
+      is dark), approaching steadily, while merged lobes slide together faster.
 
     From the merge frame on, the parents' instances belong to the merged track in
     both views, so the merged bubble never shares an id with a parent.
@@ -120,7 +124,8 @@ def reconcile_merges(
         tracks: ``{camera: Tracks}`` of :func:`~surfphase.masks.tracking.track_view` for ``cam_a`` and ``cam_b``.
         labels: ``{camera: (T, H, W) int}`` instance labels (−1 background).
         pairs: :func:`pair_views` table of ``cam_a`` and ``cam_b``.
-        params: :data:`ASSOCIATE_DEFAULTS` keys ``coast_frames``, ``merge_lobe_s``.
+        params: :data:`ASSOCIATE_DEFAULTS` keys ``coast_frames``, ``merge_lobe_s``,
+            ``merge_trend_frames``, ``merge_departure``.
         fps: the session's frame rate (frames per second), for ``merge_lobe_s``.
 
     Returns:
@@ -130,6 +135,7 @@ def reconcile_merges(
     other_view = {cam_a: cam_b, cam_b: cam_a}
     coast = int(params["coast_frames"])
     lobe = lobe_frames(params["merge_lobe_s"], fps)
+    trend = (int(params["merge_trend_frames"]), float(params["merge_departure"]))
     pair_rows = list(pairs[["frame", "local_a", "local_b"]].itertuples(index=False))
     done: set[tuple[str, int]] = set()
     for _ in range(sum(len(t.events) for t in tr.values()) + 1):
@@ -162,7 +168,7 @@ def reconcile_merges(
             m2 = tr[w].new()
             done.add((w, m2))
             parents[w], child[w] = {pm} | rest, m2
-        f = _merge_frame(tr, labels, parents, child, f, f_last, lobe)
+        f = _merge_frame(tr, labels, parents, child, f, f_last, lobe, trend)
         _apply_merge(tr, parents, child, f)
     return tr
 
@@ -234,21 +240,84 @@ def _joined(
 def _merge_frame(
     tr: Mapping[str, Tracks], labels: Mapping[str, np.ndarray], parents: Mapping[str, set[int]],
     child: Mapping[str, int], f: int, f_last: int, lobe: int,
+    trend: tuple[int, float] | None = None,
 ) -> int:  # fmt: skip
     """The frame of a merge first seen between ``f`` and ``f_last``: the first from
     which the parents touch in every view, dated back over up to ``lobe`` frames where
-    they show as two touching lobes."""
+    they show as two touching lobes, but not before the frame before the lobes depart
+    from the parents' approach in a view (``trend``: ``(merge_trend_frames,
+    merge_departure)``, :func:`_departure`)."""
+    first = f
     # Not merged while a view sees the parents apart (the first fusion was an
     # occlusion in the other view) ...
     while f < f_last and not _joined(tr, labels, parents, child, f)[0]:
         f += 1
-    # ... and merged already where they show as two touching lobes.
+    # ... and merged already where they show as two touching lobes ...
     for g in range(f - 1, max(f - 1 - lobe, -1), -1):
         ok, most = _joined(tr, labels, parents, child, g)
         if not (ok and most >= 2):
             break
         f = g
+    # ... unless they still approach as before: bubbles about to touch are lobes too.
+    if trend is not None and f + 1 < first:
+        deps = [_departure(tr[c], labels[c], parents[c], f, first, *trend) for c in parents]
+        if any(g is not None for g in deps):
+            f = max(f, min(g for g in deps if g is not None) - 1)
     return f
+
+
+def _pair_distance(
+    tr: Tracks, lab: np.ndarray, pair: Sequence[int], g: int
+) -> tuple[float, float] | None:
+    """Distance (px) between the centroids of tracks ``pair``'s pixels at frame ``g``,
+    and their summed area-equivalent radii (px); None unless both have pixels."""
+    locs = [[loc for (t, loc), k in tr.track_of.items() if t == g and k == q] for q in pair]
+    if not all(locs):
+        return None
+    frame = np.asarray(lab[g])
+    cents, radii = [], []
+    for ls in locs:
+        ys, xs = np.nonzero(np.isin(frame, ls))
+        if not len(ys):
+            return None
+        cents.append((xs.mean(), ys.mean()))
+        radii.append(np.sqrt(len(ys) / np.pi))
+    return float(np.hypot(*np.subtract(*cents))), float(sum(radii))
+
+
+def _departure(
+    tr: Tracks, lab: np.ndarray, parents: set[int], start: int, first: int,
+    trend_frames: int, depart: float,
+) -> int | None:  # fmt: skip
+    """The first frame in ``(start, first)`` at which two parents' centroid distance in
+    one view falls below the straight line through it over the previous
+    ``trend_frames`` frames (at least 3 of them) by more than ``depart`` × their summed
+    radii and 3 residual SDs: the lobes slide together faster than the bubbles
+    approached. None without one (or without exactly two parents seen)."""
+    seen = dict.fromkeys(parents, 0)
+    for (t, _loc), k in tr.track_of.items():
+        if k in seen and t < first:
+            seen[k] += 1
+    pair = sorted(seen, key=lambda q: (-seen[q], q))[:2]
+    if len(pair) < 2 or not all(seen[q] for q in pair):
+        return None
+    series = {
+        g: d
+        for g in range(max(0, start - trend_frames), first)
+        if (d := _pair_distance(tr, lab, pair, g)) is not None
+    }
+    for g in range(start + 1, first):
+        prev = [h for h in series if g - trend_frames <= h < g]
+        if g not in series or len(prev) < 3:
+            continue
+        t = np.array(prev, float)
+        d = np.array([series[h][0] for h in prev])
+        coef = np.polyfit(t, d, 1)
+        sd = float(np.std(d - np.polyval(coef, t), ddof=2)) if len(prev) > 2 else 0.0
+        dist, radii = series[g]
+        if dist < np.polyval(coef, g) - max(3.0 * sd, depart * radii):
+            return g
+    return None
 
 
 def _apply_merge(

@@ -113,6 +113,15 @@ ASSOCIATE_DEFAULTS: dict = {
     # may still cut apart for about the coalescence time (~1 ms for mm bubbles in water),
     # however many frames that is. Seconds, so one setting holds across frame rates.
     "merge_lobe_s": 0.001,
+    # ... but not before the frame before the parents' approach speeds up. Bubbles
+    # about to touch show as touching lobes too (the film between them is dark), and
+    # approach steadily; once merged, the lobes slide together faster. The frame that
+    # departs from a straight line through the previous merge_trend_frames frames of
+    # the lobes' centroid distance, by more than merge_departure x their summed radii
+    # (and 3 residual SDs), is the first seen merged; contact is dated one frame
+    # before it (a merge dated a frame early reports one wrong bubble, a frame late two).
+    "merge_trend_frames": 5,
+    "merge_departure": 0.02,
 }
 
 
