@@ -46,6 +46,7 @@ from scipy.optimize import linear_sum_assignment
 
 from surfphase.cameras import Camera, triangulate
 from surfphase.masks import detach
+from surfphase.masks.anchors import lowest_point
 from surfphase.masks.merges import lobe_frames, reconcile_merges
 from surfphase.masks.params import ASSOCIATE_DEFAULTS
 from surfphase.masks.tracking import Tracks, track_view
@@ -82,8 +83,10 @@ def instance_table(labels: np.ndarray, scores: Sequence[np.ndarray], camera: str
     Returns:
         One row per instance: ``frame, camera, local`` (index in its frame), ``area``
         (pixels), centroid ``cx, cy``, inclusive box ``x0, y0, x1, y1``, ``score`` and
-        the silhouette's topmost and bottommost points (``top_u, top_v``,
-        ``bot_u, bot_v``: mean column of the extreme row), all in pixels.
+        the silhouette's topmost and bottommost points (``top_u, top_v``: mean column
+        of the top row; ``bot_u, bot_v``: sub-pixel, the vertex of the parabola through
+        its bottom outline, :func:`~surfphase.masks.anchors.lowest_point`, within a
+        quarter of its height of the lowest row), all in pixels.
     """
     rows = []
     for t in range(labels.shape[0]):
@@ -115,8 +118,7 @@ def instance_table(labels: np.ndarray, scores: Sequence[np.ndarray], camera: str
                     float(sc),
                     xs[ys == top].mean(),
                     float(top),
-                    xs[ys == bot].mean(),
-                    float(bot),
+                    *lowest_point(ys, xs, max((bot - top) / 4.0, 1.0)),
                 )
             )
     return pd.DataFrame(rows, columns=INSTANCE_COLUMNS)
