@@ -193,13 +193,14 @@ def pair_views(
 
 
 def _on_plate(inst: pd.DataFrame, plates: Mapping[str, np.ndarray]) -> set[tuple[str, int, int]]:
-    """Instances whose lowest pixel rests on the plate's image (its static region)."""
+    """Instances whose lowest pixel rests on the plate's image (its static region): the
+    pixel under the lowest row (the sub-pixel bottom ``bot_v`` rounded to its row)."""
     out: set[tuple[str, int, int]] = set()
     for r in inst.itertuples():
         plate = plates.get(r.camera)
         if plate is None:
             continue
-        v = min(int(r.bot_v) + 1, plate.shape[0] - 1)
+        v = min(int(round(r.bot_v)) + 1, plate.shape[0] - 1)
         u = min(max(int(round(r.bot_u)), 0), plate.shape[1] - 1)
         if plate[v, u]:
             out.add((r.camera, int(r.frame), int(r.local)))

@@ -293,7 +293,8 @@ def _departure(
     one view falls below the straight line through it over the previous
     ``trend_frames`` frames (at least 3 of them) by more than ``depart`` × their summed
     radii and 3 residual SDs: the lobes slide together faster than the bubbles
-    approached. None without one (or without exactly two parents seen)."""
+    approached. The two parents seen in most frames before ``first`` are followed;
+    None without a departure or without two parents seen."""
     seen = dict.fromkeys(parents, 0)
     for (t, _loc), k in tr.track_of.items():
         if k in seen and t < first:
@@ -313,7 +314,7 @@ def _departure(
         t = np.array(prev, float)
         d = np.array([series[h][0] for h in prev])
         coef = np.polyfit(t, d, 1)
-        sd = float(np.std(d - np.polyval(coef, t), ddof=2)) if len(prev) > 2 else 0.0
+        sd = float(np.std(d - np.polyval(coef, t), ddof=2))
         dist, radii = series[g]
         if dist < np.polyval(coef, g) - max(3.0 * sd, depart * radii):
             return g
