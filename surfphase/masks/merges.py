@@ -239,8 +239,7 @@ def _joined(
 
 def _merge_frame(
     tr: Mapping[str, Tracks], labels: Mapping[str, np.ndarray], parents: Mapping[str, set[int]],
-    child: Mapping[str, int], f: int, f_last: int, lobe: int,
-    trend: tuple[int, float] | None = None,
+    child: Mapping[str, int], f: int, f_last: int, lobe: int, trend: tuple[int, float],
 ) -> int:  # fmt: skip
     """The frame of a merge first seen between ``f`` and ``f_last``: the first from
     which the parents touch in every view, dated back over up to ``lobe`` frames where
@@ -259,22 +258,18 @@ def _merge_frame(
             break
         f = g
     # ... unless they still approach as before: bubbles about to touch are lobes too.
-    if trend is not None and f + 1 < first:
+    if f + 1 < first:
         deps = [_departure(tr[c], labels[c], parents[c], f, first, *trend) for c in parents]
         if any(g is not None for g in deps):
             f = max(f, min(g for g in deps if g is not None) - 1)
     return f
 
 
-def _pair_distance(
-    tr: Tracks, lab: np.ndarray, pair: Sequence[int], g: int
-) -> tuple[float, float] | None:
-    """Distance (px) between the centroids of tracks ``pair``'s pixels at frame ``g``,
-    and their summed area-equivalent radii (px); None unless both have pixels."""
-    locs = [[loc for (t, loc), k in tr.track_of.items() if t == g and k == q] for q in pair]
-    if not all(locs):
-        return None
-    frame = np.asarray(lab[g])
+def _pair_distance(lab: np.ndarray, locs: Sequence[Sequence[int]]) -> tuple[float, float] | None:
+    """Distance (px) between the centroids of two sets of instances ``locs`` (local
+    labels) in one (H, W) label image, and their summed area-equivalent radii (px);
+    None unless both have pixels."""
+    frame = np.asarray(lab)
     cents, radii = [], []
     for ls in locs:
         ys, xs = np.nonzero(np.isin(frame, ls))
@@ -296,17 +291,19 @@ def _departure(
     approached. The two parents seen in most frames before ``first`` are followed;
     None without a departure or without two parents seen."""
     seen = dict.fromkeys(parents, 0)
-    for (t, _loc), k in tr.track_of.items():
+    locs_at: dict[tuple[int, int], list[int]] = {}  # (frame, track): its instances
+    for (t, loc), k in tr.track_of.items():
         if k in seen and t < first:
             seen[k] += 1
+            locs_at.setdefault((t, k), []).append(loc)
     pair = sorted(seen, key=lambda q: (-seen[q], q))[:2]
     if len(pair) < 2 or not all(seen[q] for q in pair):
         return None
-    series = {
-        g: d
-        for g in range(max(0, start - trend_frames), first)
-        if (d := _pair_distance(tr, lab, pair, g)) is not None
-    }
+    series = {}
+    for g in range(max(0, start - trend_frames), first):
+        locs = [locs_at.get((g, q)) for q in pair]
+        if all(locs) and (d := _pair_distance(lab[g], locs)) is not None:
+            series[g] = d
     for g in range(start + 1, first):
         prev = [h for h in series if g - trend_frames <= h < g]
         if g not in series or len(prev) < 3:
