@@ -164,6 +164,30 @@ def test_mesh_components_and_volume():
     assert vols[1] == pytest.approx(4 / 3 * np.pi * 1e-9, rel=0.01)
 
 
+def test_reported_volumes_scored_against_the_matched_true_bubbles():
+    """Reported volumes 10 % over and 20 % under the true spheres' (the second cut by
+    the frame), one bubble-frame without a volume, one reported bubble matching nothing."""
+    r = np.array([1.0, 0.5]) * MM
+    truth = pd.DataFrame(
+        {"frame": [0, 0, 1, 1], "bubble": [1, 2, 1, 2], "x": [0, 5 * MM, 0, 5 * MM],
+         "y": 0.0, "z": 0.0, "vx": 0.0, "vy": 0.1, "vz": 0.0, "r_eq": [*r, *r]}
+    )  # fmt: skip
+    true_v = 4 / 3 * np.pi * r**3
+    sized = pd.DataFrame(
+        {"frame": [0, 0, 1, 1, 1], "bubble": [3, 4, 3, 4, 9],
+         "x": [0.1 * MM, 5 * MM, 0, 5.1 * MM, 20 * MM], "y": 0.0, "z": 0.0,
+         "vx": 0.0, "vy": 0.1, "vz": 0.0,
+         "volume_m3": [1.1 * true_v[0], 0.8 * true_v[1], np.nan, 1.1 * true_v[1], 1e-9],
+         "cut": [False, True, False, False, False]}
+    )  # fmt: skip
+    out = am.reported_volume_scores(sized, truth)
+    assert out["error_pct"] == pytest.approx((10 + 20 + 10) / 3)
+    assert out["error_pct_cut"] == pytest.approx(20) and out["cut_share"] == pytest.approx(1 / 3)
+    assert out["sized_share"] == pytest.approx(3 / 4)  # the unmatched one not counted
+    none = am.reported_volume_scores(sized.assign(volume_m3=np.nan), truth)
+    assert math.isnan(none["error_pct"]) and none["sized_share"] == 0
+
+
 def test_table_rows_mean_and_worst():
     def row(name, v, p):
         return {

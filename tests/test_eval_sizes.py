@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from surfphase.eval.sizes import bubble_sizes_table, size_metrics
+from surfphase.eval.sizes import bubble_sizes_table, cut_bubble_frames, size_metrics
 
 
 def _bubbles() -> pd.DataFrame:
@@ -56,3 +56,24 @@ def test_size_summary_and_its_error_against_the_truth():
     m = size_metrics(t, matches, truth)
     assert m["d_eq_compared"] == 3
     assert m["d_eq_rel_error"] == pytest.approx((2 * (0.1 / 1.1) + 0.0) / 3)
+
+
+def test_a_bubble_the_image_border_cuts_is_flagged():
+    """Bubble 2 touches the right border of view 1 in frame 1 (and only there): that
+    bubble-frame alone is flagged ``cut``; the sizes stay the meshes'."""
+    T, H, W = 3, 20, 30
+    views = [np.full((T, H, W), -1, np.int32) for _ in range(2)]
+    for lab in views:
+        lab[:, 5:9, 5:9] = 1
+        lab[:, 12:16, 14:18] = 2
+    views[1][1, 12:16, 24:] = 2  # frame 1, view 1: bubble 2 reaches the last column
+    views[0][:, 0, 10] = 0  # the nucleation region at the border: not a bubble
+    cut = cut_bubble_frames(views, [0, 1, 2])
+    assert cut == {(1, 2)}
+    t = bubble_sizes_table(_bubbles(), _sizes(), cut)
+    flagged = t[t.cut]
+    assert list(zip(flagged.frame, flagged.bubble, strict=True)) == [(1, 2)]
+    assert flagged.d_eq_m.iloc[0] == pytest.approx(2e-3)
+    assert t.drop(columns="cut").equals(bubble_sizes_table(_bubbles(), _sizes()))
+    # Session frame indices (a window of the recording) name the rows, not positions.
+    assert cut_bubble_frames(views, [40, 41, 42]) == {(41, 2)}

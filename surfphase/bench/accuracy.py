@@ -28,8 +28,12 @@ true bubble is attached to the plate in that frame (its surface within
 :data:`ATTACHED_R_EQ` r_eq of it). Recall is over the free (not attached) true
 bubble-frames seen in both input views (gt masks); "recall, centre in both frames"
 over those whose true centroid also projects inside both images (a bubble leaving the
-frame is seen while its centre is already outside); the volume error likewise over all
-the true bubble-frames seen in both views and over those centred in both images.
+frame is seen while its centre is already outside). "volume err %" is the meshes'
+(the components each true bubble owns) over all the true bubble-frames seen in both
+views, a bubble partly outside the frame included; "volume err %: reported" the volumes
+of the evaluation's ``bubbles.csv`` over the reported bubble-frames matched to a true
+bubble that have one, and "of which cut" the share of those the image border cuts in
+some view (their sizes rest on silhouettes completed beyond the border).
 Surfaces are compared on area-uniform samples
 (:func:`surfphase.eval.geometry.sample_surface`): each true sample belongs to the true
 bubble nearest in ``distance / r_eq`` to its centroid.
@@ -170,7 +174,8 @@ COLUMNS = [
     ("Chamfer % r_eq", ("chamfer_pct_r_eq",), "low", "{:.0f}"),
     ("within 0.25 r_eq", ("near_share",), "high", "{:.3f}"),
     ("volume err %", ("volume_error_pct",), "low", "{:.0f}"),
-    ("volume err %, centre in both frames", ("volume_error_pct_centred",), "low", "{:.0f}"),
+    ("volume err %: reported", ("volume_reported", "error_pct"), "low", "{:.0f}"),
+    ("of which cut", ("volume_reported", "cut_share"), "low", "{:.2f}"),
     ("bisector/across ÷ truth", ("extent_ratio_vs_truth",), "one", "{:.2f}"),
     ("held-out PSNR dB", ("psnr",), "high", "{:.2f}"),
     ("held-out SSIM", ("ssim",), "high", "{:.3f}"),

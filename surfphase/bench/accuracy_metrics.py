@@ -280,6 +280,37 @@ def velocity_scores(pred: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = 
     }
 
 
+def reported_volume_scores(
+    sized: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = GATE_R_EQ
+) -> dict:
+    """The volumes a session reports (``sized``: the evaluation's ``bubbles.csv``, with
+    ``volume_m3`` and ``cut``) against the true bubbles they match (``truth``: ``frame,
+    bubble, x, y, z, vx, vy, vz, r_eq``, m; true volume 4/3 π r_eq³), over the matched
+    bubble-frames (ids ≥ 1) within ``gate_r_eq`` that have a volume.
+
+    Returns ``error_pct`` (mean |V / V_true − 1| in %), ``error_pct_cut`` (the same over
+    the bubble-frames flagged ``cut``), ``cut_share`` (their share) and ``sized_share``
+    (the share of matched bubble-frames with a volume); NaN where nothing counts.
+    """
+    pred = sized[sized["bubble"] >= 1]
+    m = velocity.match_bubbles_relative(pred, truth, gate_r_eq)
+    if m.empty:
+        return dict.fromkeys(("error_pct", "error_pct_cut", "cut_share", "sized_share"), math.nan)
+    cols = ["frame", "bubble", "volume_m3", *(["cut"] if "cut" in pred else [])]
+    m = m.merge(pred[cols], on=["frame", "bubble"], how="left")
+    v = m["volume_m3"].to_numpy(np.float64)
+    v_true = 4.0 / 3.0 * np.pi * m["gt_r_eq"].to_numpy(np.float64) ** 3
+    ok = np.isfinite(v)
+    err = 100.0 * np.abs(v[ok] / v_true[ok] - 1.0)
+    cut = m["cut"].to_numpy(bool)[ok] if "cut" in m else np.zeros(len(err), bool)
+    return {
+        "error_pct": float(err.mean()) if err.size else math.nan,
+        "error_pct_cut": float(err[cut].mean()) if cut.any() else math.nan,
+        "cut_share": float(cut.mean()) if err.size else math.nan,
+        "sized_share": float(ok.mean()),
+    }
+
+
 # --- one session ----------------------------------------------------------------------
 
 
@@ -361,20 +392,15 @@ def session_metrics(
         row["near_share"] = nanmean([s["near"] for s in surf])
         per_bubble = [b for s in surf for b in s["bubbles"]]
         row["volume_error_pct"] = nanmean([100 * abs(v) for _, v, _ in per_bubble])
-        row["volume_error_pct_centred"] = nanmean(
-            [
-                100 * abs(v)
-                for f, s in zip(frames, surf, strict=True)
-                for b, v, _ in s["bubbles"]
-                if b in centred.get(f, set())
-            ]
-        )
         row["extent_ratio_vs_truth"] = nanmean([r for _, _, r in per_bubble])
         row["frames_without_mesh"] = int(
             sum(not (mesh_dir / f"{f:06d}.ply").is_file() for f in frames)
         )
     if baseline_raw is not None:
         row["baseline_raw"] = velocity_scores(baseline_raw, truth)
+    sized_csv = evaluate_dir / "bubbles.csv"
+    if sized_csv.is_file():
+        row["volume_reported"] = reported_volume_scores(pd.read_csv(sized_csv), truth)
     mpath = evaluate_dir / "metrics.json"
     if mpath.is_file():
         held = (json.loads(mpath.read_text()).get("heldout") or {}).get("mean") or {}

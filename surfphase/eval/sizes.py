@@ -5,25 +5,59 @@ enclosed volume, equivalent diameter ``(6V/π)^(1/3)``); here they join the fit'
 ``bubbles.csv`` into one table per bubble and frame, and a session's summary (and, with
 ground truth, the equivalent diameter's error against the true bubbles') goes into the
 evaluation's metrics and the campaign table.
+
+A bubble whose silhouette touches the image border in some input view is partly outside
+the frame there: its size rests on that silhouette completed beyond the border (``mesh:
+complete_cut``), an extrapolation, less sure than a size from silhouettes seen whole.
+Such bubble-frames are flagged ``cut``, so that sizing can leave them out, as particle
+sizing leaves out the objects the image border cuts.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import pandas as pd
 
+from surfphase.masks.anchors import border_ids
+
 #: Columns the meshes add to a row of ``bubbles.csv``.
 SIZE_COLUMNS = ["volume_m3", "d_eq_m", "closed"]
+#: Column flagging the bubble-frames the image border cuts in some view.
+CUT_COLUMN = "cut"
 
 
-def bubble_sizes_table(bubbles: pd.DataFrame, sizes: pd.DataFrame | None) -> pd.DataFrame:
+def cut_bubble_frames(
+    labels: Sequence[np.ndarray], frame_indices: Sequence[int]
+) -> set[tuple[int, int]]:
+    """``(frame, bubble)`` of every bubble (ids ≥ 1) whose silhouette touches the image
+    border (its outermost pixel rows and columns) in some view.
+
+    Args:
+        labels: per view, a (T, H, W) int label stack of bubble ids (−1 background).
+        frame_indices: (T,) session frame index of each stack position.
+    """
+    out: set[tuple[int, int]] = set()
+    for stack in labels:
+        for k, f in enumerate(frame_indices):
+            out.update((int(f), b) for b in border_ids(np.asarray(stack[k])) if b >= 1)
+    return out
+
+
+def bubble_sizes_table(
+    bubbles: pd.DataFrame,
+    sizes: pd.DataFrame | None,
+    cut: set[tuple[int, int]] | None = None,
+) -> pd.DataFrame:
     """``bubbles`` (the fit's ``bubbles.csv``) with :data:`SIZE_COLUMNS` from the meshes'
     ``sizes`` (``frame, bubble, volume_m3, d_eq_m, closed``; m³, m), matched on frame and
     bubble; NaN (``closed`` false) where a bubble-frame has no mesh or ``sizes`` is None.
-    Rows and their order are those of ``bubbles``."""
-    out = bubbles.drop(columns=[c for c in SIZE_COLUMNS if c in bubbles.columns])
+    With ``cut`` (:func:`cut_bubble_frames`), the column :data:`CUT_COLUMN` flags those
+    bubble-frames (their sizes rest on silhouettes completed beyond the border). Rows
+    and their order are those of ``bubbles``."""
+    out = bubbles.drop(columns=[c for c in [*SIZE_COLUMNS, CUT_COLUMN] if c in bubbles.columns])
     if sizes is None or len(sizes) == 0:
         sizes = pd.DataFrame(columns=["frame", "bubble", *SIZE_COLUMNS])
     s = sizes[["frame", "bubble", *SIZE_COLUMNS]].astype(
@@ -33,6 +67,9 @@ def bubble_sizes_table(bubbles: pd.DataFrame, sizes: pd.DataFrame | None) -> pd.
         s, on=["frame", "bubble"], how="left"
     )
     out["closed"] = out["closed"].fillna(False).astype(bool)
+    if cut is not None:
+        keys = zip(out["frame"].to_numpy(), out["bubble"].to_numpy(), strict=True)
+        out[CUT_COLUMN] = np.array([(int(f), int(b)) in cut for f, b in keys], dtype=bool)
     return out
 
 

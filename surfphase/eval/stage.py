@@ -41,7 +41,9 @@ Outputs in ``OUT`` (each written whole or not at all):
   non-finite numbers are ``null``;
 * ``bubbles.csv`` — the fit's ``bubbles.csv`` with each bubble-frame's ``volume_m3``,
   ``d_eq_m`` and ``closed`` from the meshes (``MESHES/bubble_sizes.csv``; NaN where it
-  has none): positions, velocities and sizes in one table;
+  has none) and ``cut`` (its silhouette touches the image border in some view: its
+  size rests on the silhouette completed beyond the border): positions, velocities and
+  sizes in one table;
 * ``baseline_bubbles.csv`` — the two-view centroid baseline (:mod:`.baseline`);
 * ``velocity_table.csv`` — one row per compared bubble-frame, column ``source``
   (``method``/``baseline``, and ``stage1`` / the ablation names with ground truth):
@@ -304,11 +306,13 @@ def _with_sizes(
     meshes_dir: Path | None,
     gt_dir: Path | None,
     method_matches: pd.DataFrame | None,
+    cut: set[tuple[int, int]],
 ) -> tuple[pd.DataFrame, dict]:
-    """The fit's table with the meshes' per-bubble sizes, and their summary metrics."""
+    """The fit's table with the meshes' per-bubble sizes (the bubble-frames in ``cut``,
+    which the image border cuts, flagged), and their summary metrics."""
     size_csv = Path(meshes_dir) / "bubble_sizes.csv" if meshes_dir is not None else None
     sizes_in = pd.read_csv(size_csv) if size_csv is not None and size_csv.is_file() else None
-    with_sizes = sizes.bubble_sizes_table(method, sizes_in)
+    with_sizes = sizes.bubble_sizes_table(method, sizes_in, cut)
     truth_r = None
     if gt_dir is not None:
         gt_table = pd.read_csv(Path(gt_dir) / "bubbles.csv")
@@ -420,7 +424,8 @@ def run_evaluate(
         else:
             metrics.setdefault("ablations", {})[label] = res
     # Per-bubble sizes from the meshes, beside the fit's positions and velocities.
-    with_sizes, metrics["sizes"] = _with_sizes(method, meshes_dir, sc.gt_dir, method_matches)
+    cut = sizes.cut_bubble_frames(data["labels"], data["frames"])
+    with_sizes, metrics["sizes"] = _with_sizes(method, meshes_dir, sc.gt_dir, method_matches, cut)
     metrics = _finite(metrics)
     _write_outputs(out_dir, with_sizes, base, sc.tables, metrics)
     return metrics
