@@ -28,6 +28,7 @@ from scipy import ndimage as ndi
 from scipy.stats import siegelslopes
 from skimage.feature import peak_local_max
 from skimage.filters import apply_hysteresis_threshold
+from skimage.morphology import convex_hull_image
 from skimage.segmentation import watershed
 
 from surfphase.folders.frames import unit_grey
@@ -565,6 +566,50 @@ def contrast_noise(
     return sigma.astype(np.float32)
 
 
+def ring_hulls(
+    comp: np.ndarray, static: np.ndarray, inside: float = 0.9
+) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """Join each open ring in front of the plate to the core inside it.
+
+    In front of the plate (``static``, (H, W) bool) a bubble is a dark ring around a
+    bright core, both departures from the plate, split by the contrast's zero
+    crossing. Where the plate's rim or camera noise leaves the ring open, filling its
+    holes does not reach the core, and the bubble comes out as a ring and a core, or
+    as arcs. A detected object touching the plate whose convex hull holds another
+    object (at least ``inside`` of its pixels) takes that object in: it is one bubble,
+    its region the hull.
+
+    Args:
+        comp: (H, W) int labels of the detected objects (0: none), from ``ndi.label``.
+        static: (H, W) bool plate.
+
+    Returns:
+        the labels with each joined core relabelled to its ring and the hull given to
+        the ring, and ``{ring label: (H, W) bool hull}`` of the rings that took a core.
+    """
+    comp = comp.copy()
+    hulls: dict[int, np.ndarray] = {}
+    boxes = ndi.find_objects(comp)
+    sizes = np.bincount(comp.ravel(), minlength=len(boxes) + 1)
+    # Largest first: a ring is larger than the core it holds.
+    for k in sorted(range(1, len(boxes) + 1), key=lambda i: -sizes[i]):
+        sl = boxes[k - 1]
+        if sl is None or sizes[k] < 3 or not (static[sl] & (comp[sl] == k)).any():
+            continue
+        hull = np.zeros(comp.shape, bool)
+        hull[sl] = convex_hull_image(comp[sl] == k)
+        held = np.unique(comp[hull & (comp > 0) & (comp != k)])
+        held = [j for j in held if (hull & (comp == j)).sum() >= inside * sizes[j]]
+        if not held:
+            continue
+        comp[np.isin(comp, held) | (hull & (comp == 0))] = k
+        hulls[k] = hull
+        for j in held:
+            boxes[j - 1] = None
+            sizes[j] = 0
+    return comp, hulls
+
+
 def foreground_mask(
     contrast: np.ndarray,
     params: Mapping | None = None,
@@ -603,6 +648,9 @@ def foreground_mask(
         det = seeds[comp_low]
     det = ndi.binary_fill_holes(det)
     comp, n = ndi.label(det)
+    hulls = {}
+    if static is not None and p["static_ring_hull"]:
+        comp, hulls = ring_hulls(comp, static)
     fg = np.zeros_like(det)
     cores = np.zeros_like(det)
     grow = np.ones((3, 3), bool)
@@ -630,6 +678,9 @@ def foreground_mask(
             closed = ndi.binary_closing(np.pad(edge, r_close), close)
             edge = closed[r_close:-r_close, r_close:-r_close] & region
         filled = ndi.binary_fill_holes(edge)
+        if k in hulls and (edge & hulls[k][sl]).sum() >= 3:
+            # An open ring around its core: the outline is the hull of the ring's edge.
+            filled = convex_hull_image(edge & hulls[k][sl])
         fg[sl] |= filled
         cores[sl] |= filled & ~edge
     fg = ndi.binary_opening(fg, structure=np.ones((2, 2), bool))

@@ -43,6 +43,9 @@ CLASSICAL_DEFAULTS: dict = {
     # Radius (pixels) of the closing that joins an object's rim and core in front of
     # the static structure (0: none).
     "static_close_px": 2,
+    # In front of the static structure, an object whose convex hull holds another (a
+    # dark ring left open around its bright core) is one bubble: the hull of its edge.
+    "static_ring_hull": True,
     # Where the background itself is darker than this (black plate sides), nothing is seen.
     "background_floor": 0.08,
     # Gaussian smoothing before detection (not for the edge), pixels.
