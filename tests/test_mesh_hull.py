@@ -47,7 +47,7 @@ def _grid(semi: np.ndarray, voxel: float = 4e-5):
 @pytest.mark.parametrize(
     ("semi", "tilt_deg", "tol"),
     [
-        (np.array([1e-3, 1e-3, 1e-3]), 0.0, 0.08),  # sphere (voxel and pixel rounding: +6 %)
+        (np.array([1e-3, 1e-3, 1e-3]), 0.0, 0.08),  # sphere (voxel and pixel rounding: +2 %)
         (np.array([1.2e-3, 0.8e-3, 1.2e-3]), 0.0, 0.08),  # oblate, vertical axis
         (np.array([1.2e-3, 0.8e-3, 1.2e-3]), 25.0, 0.12),  # tilted: slices are ellipses
     ],
@@ -153,11 +153,15 @@ def _sphere_labels(cam, spheres: dict[int, tuple[np.ndarray, float]]) -> np.ndar
     return out.reshape(cam.height, cam.width)
 
 
-@pytest.mark.parametrize(("focal", "ratio_tol"), [(3000.0, 0.05), (800.0, 0.15)])
-def test_hull_meshes_are_the_bubbles_each_on_its_own_grid(focal, ratio_tol):
+@pytest.mark.parametrize(
+    ("focal", "ratio_tol", "vol_tol"), [(3000.0, 0.05, 0.04), (800.0, 0.15, 0.08)]
+)
+def test_hull_meshes_are_the_bubbles_each_on_its_own_grid(focal, ratio_tol, vol_tol):
     """`mesh: surface: hull` on two spheres (radii 1 and 0.6 mm: 30 and 18 px in the
     images at focal 3000 px, 8 and 5 px at 800): each mesh is closed, carries its
-    bubble's id; its volume is within 15 % of 4/3 π r³ (8 voxels per radius: +10 %),
+    bubble's id; its volume is within ``vol_tol`` of 4/3 π r³ (+1 to +2 % at 3000 px;
+    at 800 px the 5 px sphere's silhouettes are 2.6 % short of π r² in area, its mesh
+    6.5 % short in volume),
     its centre within 10 % of r, its extent along the views' bisector over its extent
     across within ``ratio_tol`` of 1 (the visual hull's, cot 20° ≈ 2.7)."""
     from surfphase.cameras import look_at
@@ -181,7 +185,7 @@ def test_hull_meshes_are_the_bubbles_each_on_its_own_grid(focal, ratio_tol):
         v, f = verts[mine], remap[faces[keep]]
         assert is_closed(f)
         vol = abs(signed_volume(v, f))
-        assert abs(vol / (4 / 3 * np.pi * r**3) - 1) < 0.15, vol / (4 / 3 * np.pi * r**3)
+        assert abs(vol / (4 / 3 * np.pi * r**3) - 1) < vol_tol, vol / (4 / 3 * np.pi * r**3)
         assert np.linalg.norm(0.5 * (v.min(0) + v.max(0)) - c) < 0.1 * r
         ratio = np.ptp(v[:, 2]) / np.ptp(v[:, 0])  # bisector z, across x
         assert abs(ratio - 1) < ratio_tol, ratio
@@ -240,7 +244,7 @@ def test_hull_is_moved_to_the_reported_centre():
 def test_an_id_in_several_pieces_is_meshed_per_pair_the_views_agree_on():
     """The nucleation region (id 0) as two attached spheres plus, in one view only, a
     speck of the same id the other view does not see: one closed mesh per sphere, each
-    its volume within 15 % and its centre within 10 % of r, and none at the speck
+    its volume within 5 % and its centre within 10 % of r, and none at the speck
     (the region's whole silhouettes' centroids triangulate to no point of either)."""
     from surfphase.mesh.measure import is_closed, signed_volume, vertex_components
     from surfphase.mesh.stage import hull_mesh_frame, mesh_params
@@ -265,7 +269,7 @@ def test_an_id_in_several_pieces_is_meshed_per_pair_the_views_agree_on():
         f = (np.cumsum(mine) - 1)[faces[keep]]
         assert is_closed(f)
         vol = abs(signed_volume(verts[mine], f))
-        assert abs(vol / (4 / 3 * np.pi * r**3) - 1) < 0.15, vol / (4 / 3 * np.pi * r**3)
+        assert abs(vol / (4 / 3 * np.pi * r**3) - 1) < 0.05, vol / (4 / 3 * np.pi * r**3)
 
 
 def test_marching_cubes_puts_a_plateau_of_zeros_outside():
@@ -316,3 +320,97 @@ def test_smoothed_centres_keep_a_straight_line_and_remove_zig_zag():
     assert np.abs(out - line)[4:-4].max() < 2e-5 / 9 + 1e-12
     assert np.abs(out - line).max() < 0.26 * 2e-5
     assert np.array_equal(smooth_centres(k, zig, w, 0), zig)
+
+
+def _two_spheres_rig(focal: float, supersample: int = 1):
+    """Two views 40° apart, 6° up, 240² at ``focal`` px (× ``supersample`` in focal and
+    size: the same images sampled finer), and two spheres (radii 1 and 0.6 mm)."""
+    from surfphase.cameras import look_at
+
+    spheres = {3: (CENTRE + [-1.5e-3, 0, 0], 1e-3), 5: (CENTRE + [1.5e-3, 0.5e-3, 0], 0.6e-3)}
+    cams = []
+    for k, az in enumerate((-20.0, 20.0)):
+        a, e = np.radians(az), np.radians(6.0)
+        eye = CENTRE + 0.1 * np.array([np.sin(a) * np.cos(e), np.sin(e), -np.cos(a) * np.cos(e)])
+        n = 240 * supersample
+        cams.append(look_at(f"cam{k}", eye, CENTRE, focal * supersample, n, n))
+    return cams, spheres
+
+
+def _bubble_mesh(verts, faces, ids, b):
+    mine = ids == b
+    keep = mine[faces].all(axis=1)
+    return verts[mine], (np.cumsum(mine) - 1)[faces[keep]]
+
+
+def test_projected_area_of_a_hull_mesh_is_its_silhouettes():
+    """Half the summed areas of a closed convex mesh's projected triangles against its
+    silhouette counted on pixels 8 times finer (rays against the analytic sphere, from
+    which the hull was made): within 1 %."""
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+    from surfphase.mesh.surfaces import projected_area
+
+    cams, spheres = _two_spheres_rig(3000.0)
+    fine, _ = _two_spheres_rig(3000.0, 8)
+    labels = [_sphere_labels(c, spheres) for c in cams]
+    verts, faces, ids = hull_mesh_frame(cams, labels, mesh_params({"surface": "hull"}))
+    for b in spheres:
+        v, f = _bubble_mesh(verts, faces, ids, b)
+        for cam, fc in zip(cams, fine, strict=True):
+            true = (_sphere_labels(fc, spheres) == b).sum() / 64.0
+            assert abs(projected_area(cam, v, f) / true - 1) < 0.01
+
+
+def test_small_bubbles_keep_their_volume_with_their_native_silhouettes():
+    """At 350 px focal the spheres are 3.5 and 2.1 px in radius in the labels the hull
+    is made from, and the smaller one's hull falls 11 % short in volume; given their
+    silhouettes' areas at 8 times the resolution (``areas``, as the masks'
+    native-resolution instances), each mesh is scaled to them and holds the sphere's
+    volume within 6 % (the slices of a sphere a few pixels across stay a little short
+    in depth), its centre kept."""
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+
+    cams, spheres = _two_spheres_rig(350.0)
+    fine, _ = _two_spheres_rig(350.0, 8)
+    labels = [_sphere_labels(c, spheres) for c in cams]
+    areas = {b: [(_sphere_labels(fc, spheres) == b).sum() / 64.0 for fc in fine] for b in spheres}
+    p = mesh_params({"surface": "hull"})
+    centres = {b: c for b, (c, _) in spheres.items()}
+    plain = hull_mesh_frame(cams, labels, p, centres=centres)
+    scaled = hull_mesh_frame(cams, labels, p, centres=centres, areas=areas)
+    errs = {}
+    for b, (_c, r) in spheres.items():
+        true = 4 / 3 * np.pi * r**3
+        v0, f0 = _bubble_mesh(*plain, b)
+        v1, f1 = _bubble_mesh(*scaled, b)
+        errs[b] = (abs(signed_volume(v0, f0)) / true - 1, abs(signed_volume(v1, f1)) / true - 1)
+        assert abs(errs[b][1]) < 0.06, errs
+        assert np.linalg.norm(v1.mean(0) - v0.mean(0)) < 0.1 * r
+    assert min(e[0] for e in errs.values()) < -0.1, errs  # the cause
+
+
+def test_silhouette_areas_sum_pieces_and_leave_out_cut_and_half_seen_bubbles():
+    """From an ``instances.csv``: an id's pieces in a view are summed; a bubble the
+    border cuts in a view, one only one view shows, and the nucleation region (id 0)
+    are left out."""
+    import pandas as pd
+
+    from surfphase.mesh.stage import silhouette_areas
+
+    cams, _ = _two_spheres_rig(3000.0)
+    rows = [  # frame, camera, bubble, area, x0, y0, x1, y1
+        (4, "cam0", 1, 100.0, 10, 10, 20, 20),
+        (4, "cam0", 1, 20.5, 21, 10, 24, 14),  # a second piece of bubble 1
+        (4, "cam1", 1, 110.0, 30, 10, 40, 20),
+        (4, "cam0", 2, 90.0, 0, 50, 9, 60),  # cut by cam0's left border
+        (4, "cam1", 2, 95.0, 50, 50, 60, 60),
+        (4, "cam0", 3, 80.0, 70, 70, 80, 80),  # cam1 does not show it
+        (4, "cam0", 0, 300.0, 100, 200, 140, 239),
+        (4, "cam1", 0, 310.0, 100, 200, 140, 239),
+        (5, "cam0", 1, 101.0, 10, 12, 20, 22),
+        (5, "cam1", 1, 112.0, 30, 12, 40, 22),
+    ]
+    cols = ["frame", "camera", "bubble", "area", "x0", "y0", "x1", "y1"]
+    got = silhouette_areas(pd.DataFrame(rows, columns=cols), cams)
+    assert got == {4: {1: [120.5, 110.0]}, 5: {1: [101.0, 112.0]}}

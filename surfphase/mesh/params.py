@@ -47,6 +47,14 @@ DEFAULTS: dict = {
     # fit's bubbles.csv (the triangulated sub-pixel silhouette centres, smoothed along
     # its track), where the fit reports it (surfphase.mesh.surfaces.hull_mesh_frame).
     "hull_at_centres": True,
+    # ... and each bubble's mesh scaled about its centre so that its images have the
+    # areas of its silhouettes at the recording's native resolution (the masks'
+    # instances.csv), the labels the hull is made from being the fit's: a bubble a few of
+    # their pixels across loses volume to them; only a factor within hull_area_limits
+    # (otherwise the masks and the hull disagree on more than a size) and only where no
+    # view's border cuts the bubble (surfphase.mesh.surfaces.scale_to_silhouettes).
+    "hull_native_area": True,
+    "hull_area_limits": [0.8, 1.25],
     # ... and each bubble the image border cuts in a view drawn whole beyond the border
     # before its hull is made: the shape its track shows whole in the nearest frame of
     # that view, moved onto its visible outline, by the rules the mask stage's centres

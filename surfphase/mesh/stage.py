@@ -48,6 +48,7 @@ from surfphase.cameras import Camera
 from surfphase.folders.fit import BUBBLES, SURFELS, read_fit_bubbles, read_fit_surfels
 from surfphase.folders.ingest import read_ingest
 from surfphase.folders.masks import INFO as MASKS_INFO
+from surfphase.folders.masks import INSTANCES as MASKS_INSTANCES
 from surfphase.folders.masks import labels_path, read_masks
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text, part_dir, replace_dir
 from surfphase.masks.params import ANCHOR_DEFAULTS
@@ -125,6 +126,7 @@ class _Session:
     masks: list[np.ndarray] | None = None  # per input camera, (T, H, W) labels (carve_px)
     centres: dict[int, dict[int, np.ndarray]] | None = None  # frame → bubble → (3,) m
     cut_rules: dict | None = None  # masks: anchors: rules of the cut silhouettes (complete_cut)
+    areas: dict[int, dict[int, list[float]]] | None = None  # frame → bubble → per view px
 
 
 def _open_session(
@@ -175,10 +177,50 @@ def _open_session(
     if p["surface"] == "hull" and p["complete_cut"] and masks_dir is not None:
         cut_rules = masks_anchor_rules(masks_dir)
         hashed += [f for f in [masks_dir / MASKS_INFO] if f.is_file()]
+    areas = None
+    if p["surface"] == "hull" and p["hull_native_area"] and masks_dir is not None:
+        inst = Path(masks_dir) / MASKS_INSTANCES
+        if inst.is_file():
+            areas = silhouette_areas(pd.read_csv(inst), inputs)
+            hashed.append(inst)
     key = mesh_key(surfels_path, cam_path, p, dev)
     if hashed:
         key = hashlib.sha256("".join([key, *map(_file_hash, hashed)]).encode()).hexdigest()
-    return _Session(surfels, inputs, session, p, dev, key, picks, masks, centres, cut_rules)
+    return _Session(
+        surfels, inputs, session, p, dev, key, picks, masks, centres, cut_rules, areas
+    )
+
+
+def silhouette_areas(
+    instances: pd.DataFrame, cameras: list[Camera]
+) -> dict[int, dict[int, list[float]]]:
+    """``{frame: {bubble: [area per camera]}}`` (pixels of ``cameras``) of the bubbles
+    (ids ≥ 1) that every camera's silhouettes show whole, from a masks folder's
+    ``instances.csv`` (areas counted at the recording's native resolution, in the fit
+    frame's pixels; an id's pieces summed); a bubble whose box reaches a view's image
+    border is left out (its silhouette there is cut)."""
+    out: dict[int, dict[int, list[float]]] = {}
+    need = {"frame", "camera", "bubble", "area", "x0", "y0", "x1", "y1"}
+    if not need <= set(instances.columns):
+        return out
+    rows = instances[instances["bubble"] >= 1]
+    per_view = []
+    for cam in cameras:
+        g = rows[rows["camera"] == cam.name]
+        edge = (
+            (g["x0"] <= 0) | (g["y0"] <= 0) | (g["x1"] >= cam.width - 1)
+            | (g["y1"] >= cam.height - 1)
+        )  # fmt: skip
+        key = ["frame", "bubble"]
+        area = g.groupby(key)["area"].sum()
+        cut = edge.groupby([g["frame"], g["bubble"]]).any()
+        per_view.append(area[~cut.reindex(area.index, fill_value=False)])
+    if not per_view:
+        return out
+    both = pd.concat(per_view, axis=1, join="inner")
+    for (frame, bubble), vals in both.iterrows():
+        out.setdefault(int(frame), {})[int(bubble)] = [float(v) for v in vals]
+    return out
 
 
 def masks_anchor_rules(masks_dir: Path) -> dict:
@@ -284,6 +326,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
                 s.p,
                 surfel_spheres(surf["means"][t][a], sb),
                 None if s.centres is None else s.centres.get(int(surf["frame"][t])),
+                None if s.areas is None else s.areas.get(int(surf["frame"][t])),
             )
             vel = bubble_vertex_velocities(
                 verts, vbub, surf["means"][t][a], sb, surf["velocity"][t][a]

@@ -95,6 +95,7 @@ def hull_mesh_frame(
     p: dict,
     hints: dict[int, tuple[np.ndarray, float]] | None = None,
     centres: dict[int, np.ndarray] | None = None,
+    areas: dict[int, list[float]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mesh of one frame's bubbles as their elliptic hulls (``mesh: surface: hull``).
 
@@ -109,8 +110,13 @@ def hull_mesh_frame(
     sub-pixel silhouette centres smoothed along its track) has its hull moved, before
     the cut at the plate, so that the centroid of its inside voxels is there: the
     hull's own centre comes from voxel-quantised strips, whose error two views at a
-    small angle multiply in depth. Returns (V, 3) vertices (m), (F, 3) faces and (V,) each
-    vertex's bubble id.
+    small angle multiply in depth. A bubble (id ≥ 1) with an ``areas`` entry (id → per
+    view, the area in pixels of its silhouette at the recording's native resolution,
+    counted in these views' pixels) has its mesh scaled about its centre so that its
+    images have those areas (:func:`scale_to_silhouettes`, ``hull_native_area``): the
+    labels the hull is made from are the fit's, and a bubble a few of their pixels
+    across loses a part of its volume to their pixels and the hull's slices. Returns
+    (V, 3) vertices (m), (F, 3) faces and (V,) each vertex's bubble id.
     """
     views = [c.undistorted() for c in inputs]
     verts, faces, ids, n = [], [], [], 0
@@ -138,6 +144,13 @@ def hull_mesh_frame(
         v, f = clean_mesh(
             v, f, float(p["min_component_m"]), int(p["smooth_steps"]), int(p["max_hole_edges"])
         )
+        if len(f) and areas and b >= 1 and b in areas:
+            centre_b = centres[b] if centres and b in centres else v.mean(axis=0)
+            v = scale_to_silhouettes(
+                v, f, views, areas[b], centre_b, tuple(p["hull_area_limits"])
+            )
+            if p["floor_y"] is not None:
+                v[:, 1] = np.maximum(v[:, 1], float(p["floor_y"]))
         if len(f):
             verts.append(v)
             faces.append(f + n)
@@ -146,6 +159,55 @@ def hull_mesh_frame(
     if not verts:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
     return np.concatenate(verts), np.concatenate(faces), np.concatenate(ids)
+
+
+def projected_area(cam: Camera, verts: np.ndarray, faces: np.ndarray) -> float:
+    """Area (pixels) of the image of a closed mesh in a camera (no distortion).
+
+    Every ray through the image of a closed surface crosses it an even number of
+    times, twice where the body is convex along the ray, so half the summed areas of
+    the projected triangles is the image's area, exactly for a convex body (a bubble's
+    hull; more where a ray crosses four times).
+
+    Args:
+        cam: the (undistorted) camera. verts: (V, 3) m. faces: (F, 3) vertex indices.
+    """
+    if len(faces) == 0:
+        return 0.0
+    uv = cam.project(np.asarray(verts, np.float64), distort=False)
+    a, b, c = uv[faces[:, 0]], uv[faces[:, 1]], uv[faces[:, 2]]
+    cross = (b[:, 0] - a[:, 0]) * (c[:, 1] - a[:, 1]) - (b[:, 1] - a[:, 1]) * (c[:, 0] - a[:, 0])
+    return float(0.25 * np.abs(cross).sum())
+
+
+def scale_to_silhouettes(
+    verts: np.ndarray,
+    faces: np.ndarray,
+    views: list[Camera],
+    areas: list[float],
+    centre: np.ndarray,
+    limits: tuple[float, float],
+) -> np.ndarray:
+    """A bubble's mesh scaled about ``centre`` ((3,) m) so that its images have the
+    silhouettes' areas: by the geometric mean over the views of √(area / projected
+    area) (:func:`projected_area`), when that factor lies within ``limits``; otherwise
+    (the masks and the hull disagree on more than a size) unchanged.
+
+    Args:
+        verts: (V, 3) m. faces: (F, 3). views: the cameras the areas are seen in.
+        areas: per view, the silhouette's area (pixels of that camera).
+    """
+    ratios = []
+    for cam, area in zip(views, areas, strict=True):
+        proj = projected_area(cam, verts, faces)
+        if not (proj > 0 and area > 0):
+            return verts
+        ratios.append(area / proj)
+    k = float(np.prod(ratios) ** (0.5 / len(ratios)))
+    if not limits[0] <= k <= limits[1]:
+        return verts
+    c = np.asarray(centre, np.float64)
+    return c + k * (np.asarray(verts, np.float64) - c)
 
 
 def surfel_spheres(means: np.ndarray, bubble: np.ndarray) -> dict[int, tuple[np.ndarray, float]]:
