@@ -127,3 +127,34 @@ def test_the_mesh_stage_grows_the_views_of_a_cut_frame_with_the_masks_rules(tmp_
     never = _Session({}, inputs, "s", p, "cpu", "k", [0], stacks, None,
                      {**rules, "min_visible_tracked": 1.5})  # fmt: skip
     assert np.array_equal(frame_views(never, 0, [{}, {}])[1][0], stacks[0][0])
+
+
+def test_a_bubble_mostly_outside_gets_the_circle_its_track_gave_it():
+    """Sphere 3 (30 px radius) leaving the frame on the left, never whole: 60 % inside,
+    then 20 % and 10 % (under ``min_visible_tracked``, 25 %). With
+    ``tracked_circles`` the last two get a circle of the radius the first frame's fit
+    gave it, placed on their visible outline: centre within 1 px of the whole
+    silhouette's, radius within 0.5 px; without it, nothing."""
+    cam = _rig()[0]
+    whole = _sphere_labels(cam, SPHERES)
+    e = _whole_ellipse(whole, 3)
+    r_true = float(np.sqrt(e[2] * e[3]))
+    cols = np.flatnonzero((whole == 3).any(axis=0))
+    rules = dict(ANCHOR_DEFAULTS)
+    # The same frame grid throughout: the bubble moves left by the cut it gets.
+    stack = []
+    for frac in (0.4, 0.8, 0.9):
+        x0 = int(cols[0] + frac * len(cols))
+        shifted = np.full_like(whole, -1)
+        shifted[:, : whole.shape[1] - x0] = whole[:, x0:]
+        shifted[shifted == 5] = -1
+        stack.append(shifted)
+    stack = np.stack(stack)
+    shifts = [int(cols[0] + f * len(cols)) for f in (0.4, 0.8, 0.9)]
+    for t in (1, 2):
+        assert cut_shapes(stack, t, rules, circles=True) == {}
+        got = cut_shapes(stack, t, rules, circles=True, tracked_circles=True)
+        assert set(got) == {3}
+        u, v, a, b, _ = got[3]
+        assert abs(a - r_true) < 0.5 and a == b
+        assert np.hypot(u - (e[0] - shifts[t]), v - e[1]) < 1.0, (u, v, e[0] - shifts[t], e[1])

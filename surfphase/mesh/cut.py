@@ -11,7 +11,8 @@ nearest frame of the bubble's track, moved onto the visible outline (as the mask
 ``tracked_cut_centres``), else, with ``circles``, as the circle fitted to the visible
 outline; either only when at least ``min_visible_tracked`` of it is inside the frame,
 the visible part fits inside it and the outline fits it within ``max_shape_rms`` of its
-radius (``masks: anchors:``). The ellipse fitted to a partial outline, which the mask
+radius (``masks: anchors:``); with ``tracked_circles``, one less inside as the circle of
+the radius its track's nearest frame gave it so, placed on its visible outline. The ellipse fitted to a partial outline, which the mask
 stage's centres take when 60 % is visible, is not used: across the cut its axis is
 poorly constrained (a sphere's silhouette 64 % inside, radius 9.2 px, gave semi-axes of
 7.4 and 9.1 px; the circle 9.5 px). Inside the frame the masks are kept as they are;
@@ -74,6 +75,7 @@ def cut_shapes(
     rules: Mapping,
     cache: dict | None = None,
     circles: bool = False,
+    tracked_circles: bool = False,
 ) -> dict[int, Ellipse]:
     """The whole silhouette of every region (id ≥ 1) the border cuts in frame ``t``.
 
@@ -87,6 +89,10 @@ def cut_shapes(
         circles: a region whose track shows no whole shape gets the circle fitted to
             its visible outline, by the same rules (a prior: a bubble of a millimetre is
             near-spherical; ``mesh: complete_cut_circles``).
+        tracked_circles: with ``circles``, a region less of which is inside than
+            ``min_visible_tracked`` gets the circle of the radius its track's nearest
+            frame gave it that way, placed on its visible outline (a centre fitted to a
+            short arc of known radius; ``mesh: complete_cut_tracked_circles``).
 
     Returns:
         ``{id: ellipse}``: the shape of each cut region that gets one.
@@ -129,7 +135,88 @@ def cut_shapes(
                 and lo * np.pi * c[2] ** 2 <= area <= np.pi * c[2] ** 2
             ):
                 out[b] = (c[0], c[1], c[2], c[2], 0.0)
+        if b not in out and circles and tracked_circles:
+
+            def circle_at(k: int, b: int = b):
+                key = ("circle", k, b)
+                if key not in cache:
+                    cache[key] = _circle_shape(labels, k, b, lo, rms_max)
+                return cache[key]
+
+            ref = nearest_whole(frames, t, circle_at)
+            c = None if ref is None else place_circle(pts, lab == b, ref[2])
+            if c is not None and c[3] <= rms_max * ref[2] and area <= np.pi * ref[2] ** 2:
+                out[b] = (c[0], c[1], ref[2], ref[2], 0.0)
     return out
+
+
+def place_circle(
+    points: np.ndarray, region: np.ndarray, radius: float, inside: float = 0.95
+) -> tuple[float, float, float, float] | None:
+    """The circle of the given radius (pixels) on a short visible arc: of
+    :func:`fit_circle_of_radius` from starts one radius from the outline's mean in eight
+    directions, the one with the least rms among those that hold at least ``inside``
+    of the (H, W) bool ``region``'s pixels (an arc fits a circle on either side of it;
+    the visible part lies inside the bubble); None when none does."""
+    P = np.asarray(points, np.float64)
+    vv, uu = np.nonzero(region)
+    if len(P) < 3 or len(uu) == 0:
+        return None
+    best = None
+    mid = P.mean(axis=0)
+    for a in np.linspace(0, 2 * np.pi, 8, endpoint=False):
+        c = fit_circle_of_radius(P, radius, mid + radius * np.array([np.cos(a), np.sin(a)]))
+        if c is None:
+            continue
+        held = np.mean(np.hypot(uu - c[0], vv - c[1]) <= radius + 0.5)
+        if held >= inside and (best is None or c[3] < best[3]):
+            best = c
+    return best
+
+
+def _circle_shape(
+    labels: np.ndarray, k: int, b: int, lo: float, rms_max: float
+) -> Ellipse | None:
+    """The circle of region ``b`` in frame ``k`` of a view's labels: the ellipse fitted to
+    its outline where the border does not cut it, else the circle fitted to its visible
+    outline when at least ``lo`` of it is inside and the outline fits it within
+    ``rms_max`` of its radius; None otherwise. As an ellipse of equal semi-axes (the
+    mean of the whole shape's)."""
+    lab = np.asarray(labels[k])
+    if not (lab == b).any():
+        return None
+    whole = whole_shape(labels, k, b)
+    if whole is not None:
+        r = float(np.sqrt(whole[2] * whole[3]))
+        return (whole[0], whole[1], r, r, 0.0)
+    vis = _outline(lab, b)
+    if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
+        return None
+    c = fit_circle(vis[0])
+    if c is None or c[3] > rms_max * c[2] or not lo * np.pi * c[2] ** 2 <= vis[1] <= np.pi * c[2] ** 2:
+        return None
+    return (c[0], c[1], c[2], c[2], 0.0)
+
+
+def fit_circle_of_radius(
+    points: np.ndarray, radius: float, start: tuple[float, float]
+) -> tuple[float, float, float, float] | None:
+    """``(u, v, radius, rms)``: the centre of the circle of the given radius (pixels)
+    nearest (N, 2) outline points in the least squares of their distances to it
+    (``scipy.optimize.least_squares`` from ``start``), and the rms of those distances;
+    None where it fails."""
+    from scipy.optimize import least_squares
+
+    P = np.asarray(points, np.float64)
+    if len(P) < 3:
+        return None
+    res = least_squares(
+        lambda c: np.linalg.norm(P - c, axis=1) - radius, np.asarray(start, np.float64),
+        method="lm",
+    )  # fmt: skip
+    if not res.success or not np.isfinite(res.x).all():
+        return None
+    return float(res.x[0]), float(res.x[1]), float(radius), float(np.sqrt(np.mean(res.fun**2)))
 
 
 def fit_circle(points: np.ndarray) -> tuple[float, float, float, float] | None:

@@ -64,5 +64,8 @@ DEFAULTS: dict = {
     # ... and one whose track shows no whole shape, the circle fitted to its visible
     # outline, by the same rules (a prior: a bubble of a millimetre is near-spherical).
     "complete_cut_circles": True,
+    # ... and one less of which is inside than min_visible_tracked, the circle of the
+    # radius its track's nearest frame gave it so, placed on its visible outline.
+    "complete_cut_tracked_circles": True,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }

@@ -242,7 +242,12 @@ def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], l
         return list(s.inputs), labels
     views = [
         completed_view(
-            cam, lab, cut_shapes(m, t, s.cut_rules, c, bool(s.p["complete_cut_circles"]))
+            cam,
+            lab,
+            cut_shapes(
+                m, t, s.cut_rules, c, bool(s.p["complete_cut_circles"]),
+                bool(s.p["complete_cut_tracked_circles"]),
+            ),  # fmt: skip
         )
         for cam, lab, m, c in zip(s.inputs, labels, s.masks, cache, strict=True)
     ]
