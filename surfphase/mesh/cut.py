@@ -12,8 +12,9 @@ nearest frame of the bubble's track, moved onto the visible outline (as the mask
 outline; either only when at least ``min_visible_tracked`` of it is inside the frame,
 the visible part fits inside it and the outline fits it within ``max_shape_rms`` of its
 radius (``masks: anchors:``); with ``tracked_circles``, one less inside as the circle of
-the radius its track's nearest frame gave it so, placed on its visible outline. The ellipse fitted to a partial outline, which the mask
-stage's centres take when 60 % is visible, is not used: across the cut its axis is
+the radius its track's nearest frame gave it so, placed on its visible outline. The
+ellipse fitted to a partial outline, which the mask stage's centres take when 60 % is
+visible, is not used: across the cut its axis is
 poorly constrained (a sphere's silhouette 64 % inside, radius 9.2 px, gave semi-axes of
 7.4 and 9.1 px; the circle 9.5 px). Inside the frame the masks are kept as they are;
 only pixels beyond the border are drawn. The outlines are the binary masks' own (pixel
@@ -129,11 +130,7 @@ def cut_shapes(
             out[b] = (fit[0], fit[1], ref[2], ref[3], ref[4])
         if b not in out and circles:
             c = fit_circle(pts)
-            if (
-                c is not None
-                and c[3] <= rms_max * c[2]
-                and lo * np.pi * c[2] ** 2 <= area <= np.pi * c[2] ** 2
-            ):
+            if _circle_holds(c, area, lo, rms_max):
                 out[b] = (c[0], c[1], c[2], c[2], 0.0)
         if b not in out and circles and tracked_circles:
 
@@ -193,9 +190,20 @@ def _circle_shape(
     if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
         return None
     c = fit_circle(vis[0])
-    if c is None or c[3] > rms_max * c[2] or not lo * np.pi * c[2] ** 2 <= vis[1] <= np.pi * c[2] ** 2:
+    if not _circle_holds(c, vis[1], lo, rms_max):
         return None
     return (c[0], c[1], c[2], c[2], 0.0)
+
+
+def _circle_holds(c: tuple | None, area: float, lo: float, rms_max: float) -> bool:
+    """Whether the circle ``(u, v, r, rms)`` fitted to a cut silhouette's visible outline
+    takes it: the outline within ``rms_max`` of the radius, and the visible ``area``
+    (pixels²) at least ``lo`` of the circle's and at most all of it."""
+    return (
+        c is not None
+        and c[3] <= rms_max * c[2]
+        and lo * np.pi * c[2] ** 2 <= area <= np.pi * c[2] ** 2
+    )
 
 
 def fit_circle_of_radius(
