@@ -118,3 +118,48 @@ def test_depth_bounds_pull_surfels_back_along_the_bisector(tmp_path):
     b.apply(pts)
     assert (pts[0].numpy() - c) @ axis == pytest.approx(1.2 * r, rel=1e-9)
     assert torch.equal(pts[1:], before[1:])
+
+
+def test_checkpoint_fingerprint_sees_every_frames_masks_and_the_anchors(tmp_path):
+    """A fit's checkpoint resumes only the same inputs: the session fingerprint changes
+    when one middle frame's labels change (the first and last untouched), when the
+    anchors change and when the merges change, and is the same when nothing does."""
+    import shutil
+
+    import pandas as pd
+
+    from surfphase.fit.session import SessionData
+
+    ingest, masks = make_toy_session(tmp_path, frames=3, size=40)
+    pd.DataFrame(
+        [(t, 1, 0.001 * t, 0.002, 0.0) for t in range(3)], columns=["frame", "bubble", "x", "y", "z"]
+    ).to_csv(masks / "anchors.csv", index=False)
+    first = SessionData(ingest, masks).fingerprint()
+    assert SessionData(ingest, masks).fingerprint() == first
+
+    def changed(edit) -> str:
+        other = tmp_path / f"masks_{edit.__name__}"
+        shutil.copytree(masks, other)
+        edit(other)
+        return SessionData(ingest, other).fingerprint()
+
+    def middle_labels(folder):
+        path = sorted(folder.glob("*_labels.npy"))[0]
+        lab = np.load(path)
+        ys, xs = np.nonzero(lab[1] >= 1)
+        lab[1, ys[0], xs[0]] = -1  # one pixel of one bubble, frame 1 of 3
+        np.save(path, lab)
+
+    def anchors(folder):
+        a = pd.read_csv(folder / "anchors.csv")
+        a.loc[a.index[0], "x"] += 1e-6
+        a.to_csv(folder / "anchors.csv", index=False)
+
+    def merges(folder):
+        pd.DataFrame(
+            [(1, "cam0", "merge", "1+2", "3")],
+            columns=["frame", "camera", "event", "parents", "children"],
+        ).to_csv(folder / "events.csv", index=False)
+
+    got = [changed(f) for f in (middle_labels, anchors, merges)]
+    assert first not in got and len(set(got)) == 3

@@ -71,11 +71,24 @@ class SessionData:
         )
 
     def fingerprint(self) -> str:
+        """Hash of everything the fit reads: the ingest's metadata, every frame and every
+        label of every view, the cameras, the mask stage's merges and anchors. A
+        checkpoint resumes only a run with the same fingerprint (with the masks of one
+        frame changed, or their anchors, a rerun refits instead of keeping the surfels
+        fitted to the old ones)."""
         h = hashlib.sha256(json.dumps(self.meta, sort_keys=True).encode())
         for s, lab in zip(self.stacks, self.label_stacks, strict=True):
-            h.update(str((s.shape, str(s.dtype), lab.shape)).encode())
-            h.update(np.ascontiguousarray(s[0]).tobytes())
-            h.update(np.ascontiguousarray(lab[-1]).tobytes())
+            h.update(str((s.shape, str(s.dtype), lab.shape, str(lab.dtype))).encode())
+            for arr in (s, lab):
+                for t in range(arr.shape[0]):
+                    h.update(np.ascontiguousarray(arr[t]).data)
         for c in self.cameras:
             h.update(json.dumps(c.to_dict(), sort_keys=True).encode())
+        merges = {
+            str(t): {str(b): sorted(int(q) for q in ps) for b, ps in m.items()}
+            for t, m in self.merges.items()
+        }
+        h.update(json.dumps(merges, sort_keys=True).encode())
+        if self.anchors is not None:
+            h.update(self.anchors.to_csv(index=False).encode())
         return h.hexdigest()
