@@ -137,7 +137,7 @@ def cut_shapes(
             def circle_at(k: int, b: int = b):
                 key = ("circle", k, b)
                 if key not in cache:
-                    cache[key] = _circle_shape(labels, k, b, lo, rms_max)
+                    cache[key] = _circle_shape(labels[k], b, whole_at(k), lo, rms_max)
                 return cache[key]
 
             ref = nearest_whole(frames, t, circle_at)
@@ -172,17 +172,16 @@ def place_circle(
 
 
 def _circle_shape(
-    labels: np.ndarray, k: int, b: int, lo: float, rms_max: float
+    lab: np.ndarray, b: int, whole: Ellipse | None, lo: float, rms_max: float
 ) -> Ellipse | None:
-    """The circle of region ``b`` in frame ``k`` of a view's labels: the ellipse fitted to
-    its outline where the border does not cut it, else the circle fitted to its visible
-    outline when at least ``lo`` of it is inside and the outline fits it within
-    ``rms_max`` of its radius; None otherwise. As an ellipse of equal semi-axes (the
-    mean of the whole shape's)."""
-    lab = np.asarray(labels[k])
+    """The circle of region ``b`` in one frame's (H, W) labels of a view: from
+    ``whole``, the ellipse of its outline where the border does not cut it
+    (:func:`whole_shape`), else the circle fitted to its visible outline when at least
+    ``lo`` of it is inside and the outline fits it within ``rms_max`` of its radius;
+    None otherwise. As an ellipse of equal semi-axes (the mean of the whole shape's)."""
+    lab = np.asarray(lab)
     if not (lab == b).any():
         return None
-    whole = whole_shape(labels, k, b)
     if whole is not None:
         r = float(np.sqrt(whole[2] * whole[3]))
         return (whole[0], whole[1], r, r, 0.0)

@@ -211,12 +211,9 @@ def silhouette_areas(
             (g["x0"] <= 0) | (g["y0"] <= 0) | (g["x1"] >= cam.width - 1)
             | (g["y1"] >= cam.height - 1)
         )  # fmt: skip
-        key = ["frame", "bubble"]
-        area = g.groupby(key)["area"].sum()
+        area = g.groupby(["frame", "bubble"])["area"].sum()
         cut = edge.groupby([g["frame"], g["bubble"]]).any()
         per_view.append(area[~cut.reindex(area.index, fill_value=False)])
-    if not per_view:
-        return out
     both = pd.concat(per_view, axis=1, join="inner")
     for (frame, bubble), vals in both.iterrows():
         out.setdefault(int(frame), {})[int(bubble)] = [float(v) for v in vals]
