@@ -158,3 +158,43 @@ def test_a_bubble_mostly_outside_gets_the_circle_its_track_gave_it():
         u, v, a, b, _ = got[3]
         assert abs(a - r_true) < 0.5 and a == b
         assert np.hypot(u - (e[0] - shifts[t]), v - e[1]) < 1.0, (u, v, e[0] - shifts[t], e[1])
+
+
+def test_a_cut_bubble_without_a_shape_gets_the_image_of_its_sphere():
+    """Sphere 3 with 80 % of its silhouette cut off by view 0's right border (too little
+    for the tracked circle rules): the circle :func:`sphere_shapes` draws from the
+    sphere (centre, radius) is its exact image (analytic: f·r / depth about the
+    centre's projection, which here is beyond the border); it completes the hull to
+    within 4 % of the uncut view's volume. A sphere 30 % too small for the visible part,
+    or one already shaped, or a bubble not cut, gets none."""
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params, sphere_shapes
+
+    cams = _rig()
+    labels = [_sphere_labels(c, SPHERES) for c in cams]
+    cols = np.flatnonzero((labels[0] == 3).any(axis=0))
+    x1 = int(cols[0] + 0.2 * len(cols))
+    cut_cam = cams[0].cropped(0, 0, x1, cams[0].height)
+    cut_lab = np.ascontiguousarray(labels[0][:, :x1])
+    got = sphere_shapes(cut_cam, cut_lab, SPHERES, set())
+    assert set(got) == {3}
+    X, r = SPHERES[3]
+    uv = cut_cam.project(X[None], distort=False)[0]
+    rho = np.sqrt(cut_cam.K[0, 0] * cut_cam.K[1, 1]) * r / cut_cam.world_to_camera(X[None])[0, 2]
+    np.testing.assert_allclose(got[3], (uv[0], uv[1], rho, rho, 0.0), rtol=1e-12)
+    assert uv[0] > x1  # its centre beyond the border
+    small = {3: (X, 0.7 * r)}
+    assert sphere_shapes(cut_cam, cut_lab, small, set()) == {}
+    assert sphere_shapes(cut_cam, cut_lab, SPHERES, {3}) == {}
+
+    p = mesh_params({"surface": "hull"})
+    grown_cam, grown = completed_view(cut_cam, cut_lab, got)
+
+    def volume(cam0, lab0):
+        v, f, ids = hull_mesh_frame([cam0, cams[1]], [lab0, labels[1]], p)
+        mine = ids == 3
+        keep = mine[f].all(axis=1)
+        return abs(signed_volume(v[mine], (np.cumsum(mine) - 1)[f[keep]]))
+
+    ref = volume(cams[0], labels[0])
+    assert abs(volume(grown_cam, grown) / ref - 1) < 0.04

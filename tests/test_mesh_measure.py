@@ -46,3 +46,28 @@ def test_unbound_and_nucleation_components_are_not_reported():
     verts, faces = _two_spheres()
     assert bubble_sizes(verts, faces, np.where(verts[:, 0] < 1.5e-3, 0, -1)) == []
     assert bubble_sizes(np.zeros((0, 3)), np.zeros((0, 3), int), np.zeros(0, int)) == []
+
+
+@pytest.mark.parametrize("frac", [0.3, 0.7])
+def test_drop_fragments_keeps_what_pymeshlab_keeps_at_that_diameter(frac):
+    """Balls of 1 and 0.6 mm radius (bounding-box diagonals 2√3 and 1.2√3 mm): at 0.3
+    of the largest's diagonal both stay, at 0.7 the small one goes, as pymeshlab's
+    removal of components below that diameter gives (the reference)."""
+    from surfphase.mesh.cleanup import drop_fragments
+
+    verts, faces = _two_spheres()
+    v, f = drop_fragments(verts, faces, frac)
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(verts, faces))
+    diag = float(np.linalg.norm(np.ptp(verts[verts[:, 0] < 1.5e-3], axis=0)))
+    ms.meshing_remove_connected_component_by_diameter(
+        mincomponentdiag=pymeshlab.PureValue(frac * diag)
+    )
+    ms.meshing_remove_unreferenced_vertices()
+    ref = ms.current_mesh()
+    assert len(f) == ref.face_number() and len(v) == ref.vertex_number()
+    assert abs(signed_volume(v, f)) == pytest.approx(
+        abs(ms.get_geometric_measures()["mesh_volume"]), rel=1e-9
+    )
+    assert len(f) == (len(faces) if frac < 0.6 else int((verts[faces[:, 0], 0] < 1.5e-3).sum()))
+    assert np.array_equal(drop_fragments(verts, faces, 0.0)[1], faces)

@@ -33,7 +33,7 @@ from surfphase.masks.params import ANCHOR_DEFAULTS
 _MIN_OUTLINE_POINTS = 8
 
 ANCHOR_COLUMNS = [
-    "frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "cut", "consistent"
+    "frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "r_m", "cut", "consistent"
 ]  # fmt: skip
 
 
@@ -220,7 +220,8 @@ def anchor_table(
 
     Returns:
         :data:`ANCHOR_COLUMNS`: centre (m, lab frame), the larger reprojection error of
-        the two centres (pixels), the ratio of the two apparent sizes (≥ 1), whether
+        the two centres (pixels), the ratio of the two apparent sizes (≥ 1), their mean
+        (``r_m``, m: :func:`apparent_size`, the whole silhouette's where fitted), whether
         either view's centre came from an outline fit (``cut``) and whether both are
         within the limits. Fitted and measured centres pass the same test.
     """
@@ -242,7 +243,10 @@ def anchor_table(
             sa, sb = apparent_size(ca, X, a[bid][2]), apparent_size(cb, X, b[bid][2])
             ratio = max(sa, sb) / max(min(sa, sb), 1e-12)
             ok = rep <= float(p["max_reproj_px"]) and ratio <= float(p["max_size_ratio"])
-            rows.append((int(f), int(bid), *map(float, X), rep, ratio, bid in fitted, bool(ok)))
+            r_m = 0.5 * (sa + sb)
+            rows.append(
+                (int(f), int(bid), *map(float, X), rep, ratio, r_m, bid in fitted, bool(ok))
+            )
     return pd.DataFrame(rows, columns=ANCHOR_COLUMNS)
 
 
@@ -358,7 +362,7 @@ def fit_outline(points: np.ndarray) -> tuple[float, float, float] | None:
     return float(u), float(v), float(area)
 
 
-def _owners(lab: np.ndarray, ring_px: int) -> np.ndarray:
+def region_owners(lab: np.ndarray, ring_px: int) -> np.ndarray:
     """Each pixel's nearest region id (the labels themselves where ``ring_px`` is 0)."""
     if ring_px <= 0:
         return lab
@@ -384,7 +388,7 @@ def visible_outline(
 
     Args:
         contrast: (H, W) relative darkness in [0, 1]. labels: (H, W) int, −1 background.
-        owner: (H, W) nearest region id of each pixel (:func:`_owners`).
+        owner: (H, W) nearest region id of each pixel (:func:`region_owners`).
         b: the region. ring_px: band width of the cover weights, pixels.
         margin_px: as :func:`cut_centres`.
 
@@ -451,7 +455,7 @@ def cut_centres(
     ids = {int(b) for b in ids if (lab == b).any()}
     if not ids or float(min_visible) > 1.0:
         return out
-    owner = _owners(lab, ring_px)
+    owner = region_owners(lab, ring_px)
     for b in sorted(ids):
         vis = visible_outline(contrast, lab, owner, b, ring_px, margin_px)
         if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
@@ -566,7 +570,9 @@ def tracked_cut_centres(
         if (t, b) not in shapes:
             shapes[(t, b)] = None
             if b not in border_ids(lab[t]):
-                vis = visible_outline(contrast_at(t), lab[t], _owners(lab[t], ring_px), b, ring_px)
+                vis = visible_outline(
+                    contrast_at(t), lab[t], region_owners(lab[t], ring_px), b, ring_px
+                )
                 if vis is not None and len(vis[0]) >= _MIN_OUTLINE_POINTS:
                     shapes[(t, b)] = outline_ellipse(vis[0])
         return shapes[(t, b)]
@@ -583,7 +589,7 @@ def tracked_cut_centres(
             ref = nearest_whole(frames_of.get(b, []), t, lambda k, b=b: whole(k, b))
             if ref is None:
                 continue
-            owner = _owners(lab[t], ring_px) if owner is None else owner
+            owner = region_owners(lab[t], ring_px) if owner is None else owner
             vis = visible_outline(contrast_at(t), lab[t], owner, b, ring_px, margin_px)
             if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
                 continue
@@ -616,3 +622,244 @@ def lowest_point(rows: np.ndarray, cols: np.ndarray, reach: float) -> tuple[floa
         if a < 0 and abs(b / (2 * a)) <= (us.max() - us.min()) / 2:
             u, v = float(c0 + mid - b / (2 * a)), float(c - b * b / (4 * a))
     return u, v
+
+
+def circle_fit(points: np.ndarray) -> tuple[float, float, float] | None:
+    """``(u, v, r)`` of the circle fitted to (N, 2) points (pixels; the algebraic
+    least-squares fit of Kåsa: ``u² + v² + D u + E v + F = 0`` linear in D, E, F);
+    None where N < 3 or the points are collinear."""
+    P = np.asarray(points, np.float64)
+    if len(P) < 3:
+        return None
+    c = P.mean(axis=0)
+    Q = P - c  # centred, for conditioning
+    A = np.c_[Q, np.ones(len(Q))]
+    sol, *_ = np.linalg.lstsq(A, -(Q**2).sum(axis=1), rcond=None)
+    u, v = -sol[0] / 2, -sol[1] / 2
+    r2 = u * u + v * v - sol[2]
+    if not np.isfinite(r2) or r2 <= 0:
+        return None
+    return float(u + c[0]), float(v + c[1]), float(np.sqrt(r2))
+
+
+def sphere_centres(
+    cameras: Sequence[Camera],
+    outlines: Sequence[np.ndarray | None],
+    covers: Sequence[float],
+    known: Sequence[tuple[float, float, float] | None] = (None, None),
+    min_visible: float = ANCHOR_DEFAULTS["min_visible_sphere"],
+    max_rms: float = ANCHOR_DEFAULTS["max_sphere_rms"],
+) -> list[tuple[float, float, float]] | None:
+    """The sphere that a bubble's visible outline in one or two views lies on.
+
+    A bubble that the frame cuts in a view and that no frame of that view shows whole
+    (it enters or leaves the frame at the session's start or end) has no centre there
+    from :func:`cut_centres` or :func:`tracked_cut_centres`. Its silhouette in a view is
+    close to the circle of centre X's projection and radius f·R / depth (sphere centre
+    X, radius R); the fit minimises the visible outline points' radial distances to
+    those circles (``scipy.optimize.least_squares``):
+
+    * where the other view has the bubble's centre and area (``known``), X lies on that
+      centre's ray and R is the area's equivalent radius at X's depth: one unknown, the
+      depth along the ray, from the cut view's outline alone;
+    * where neither view has one, X and R from both views' outlines at once, from the
+      triangulated centres of each outline's circle (:func:`circle_fit`). A spheroid's
+      arc bends less than its equivalent circle, so this centre drifts as less of the
+      bubble is inside (about 0.1 r at 30 %).
+
+    Args:
+        cameras: the two views' undistorted cameras.
+        outlines: per view, (N, 2) visible outline points (pixels, column, row;
+            :func:`visible_outline`), at least ``_MIN_OUTLINE_POINTS`` where fitted;
+            None (or anything) where ``known``.
+        covers: per view, the silhouette's visible (cover-weighted) area, pixels².
+        known: per view, the centre and area ``(u, v, area)`` it already has, or None.
+        min_visible: least fraction of each fitted view's circle inside the frame.
+        max_rms: largest rms radial distance of a fitted view's outline points to its
+            circle, over the circle's radius.
+
+    Returns:
+        per view ``(u, v, area)``: the circle's centre (pixels) and area (pixels², the
+        whole silhouette's), the ``known`` entry where given; None where an outline is
+        too short, the fit fails or a fitted view's circle misses ``min_visible`` or
+        ``max_rms``.
+    """
+    from scipy.optimize import least_squares
+
+    cams = list(cameras)[:2]
+    fitted = [k for k in (0, 1) if known[k] is None]
+    if not fitted:
+        return [tuple(map(float, k)) for k in known]
+    pts = {k: np.asarray(outlines[k], np.float64).reshape(-1, 2) for k in fitted}
+    if any(len(p) < _MIN_OUTLINE_POINTS for p in pts.values()):
+        return None
+    circles = {k: circle_fit(pts[k]) for k in fitted}
+    if any(c is None for c in circles.values()):
+        return None
+    focal = [float(np.sqrt(c.K[0, 0] * c.K[1, 1])) for c in cams]
+    start = [known[k][:2] if known[k] is not None else circles[k][:2] for k in (0, 1)]
+    X0 = triangulate(cams, [np.array([u]) for u in start])[0]
+    if (
+        not np.all(np.isfinite(X0))
+        or min(float(c.world_to_camera(X0[None])[0, 2]) for c in cams) <= 0
+    ):
+        return None
+
+    def depth(k: int, X: np.ndarray) -> float:
+        return float(cams[k].world_to_camera(X[None])[0, 2])
+
+    if len(fitted) == 1:
+        j = 1 - fitted[0]
+        cam, (u, v, area) = cams[j], known[j]
+        ray = cam.R.T @ np.linalg.solve(cam.K, np.array([u, v, 1.0]))
+        ray /= np.linalg.norm(ray)
+        r_px = float(np.sqrt(area / np.pi))
+        x0 = np.array([float((X0 - cam.center) @ ray)])
+
+        def sphere(x: np.ndarray) -> tuple[np.ndarray, float]:
+            X = cam.center + x[0] * ray
+            return X, r_px * depth(j, X) / focal[j]
+
+        scale = np.array([max(x0[0], 1e-6) * 0.01])
+    else:
+        R0 = float(np.mean([circles[k][2] * depth(k, X0) / focal[k] for k in (0, 1)]))
+        x0 = np.r_[X0, R0]
+
+        def sphere(x: np.ndarray) -> tuple[np.ndarray, float]:
+            return x[:3], float(x[3])
+
+        scale = np.full(4, max(R0, 1e-6))
+
+    def circle_of(k: int, x: np.ndarray) -> tuple[np.ndarray, float]:
+        X, R = sphere(x)
+        return cams[k].project(X[None], distort=False)[0], focal[k] * R / max(depth(k, X), 1e-9)
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        out = []
+        for k in fitted:
+            c, r = circle_of(k, x)
+            out.append(np.linalg.norm(pts[k] - c, axis=1) - r)
+        return np.concatenate(out)
+
+    fit = least_squares(resid, x0, x_scale=scale, method="lm")
+    X, R = sphere(fit.x)
+    if not fit.success or not np.all(np.isfinite(X)) or not R > 0:
+        return None
+    if min(depth(k, X) for k in (0, 1)) <= 0:
+        return None
+    out = [None if k is None else tuple(map(float, k)) for k in known]
+    for k in fitted:
+        c, r = circle_of(k, fit.x)
+        rms = float(np.sqrt(np.mean((np.linalg.norm(pts[k] - c, axis=1) - r) ** 2)))
+        area = float(np.pi * r * r)
+        if rms > float(max_rms) * r or float(covers[k]) < float(min_visible) * area:
+            return None
+        out[k] = (float(c[0]), float(c[1]), area)
+    return out
+
+
+def register_outline(
+    points: np.ndarray, ref: np.ndarray, start: np.ndarray | None = None, iters: int = 30
+) -> tuple[np.ndarray, float] | None:
+    """The translation that lays a visible outline onto a reference outline of the
+    same silhouette (translation-only ICP: each point to the nearest point of the
+    reference line, densified every 0.1 px between its points less than 2 px apart).
+
+    A bubble leaving the frame shows a shrinking part of one outline: each frame's
+    visible arc is a piece of the arc of the frame where most of it was inside, moved.
+
+    Args:
+        points: (N, 2) visible outline points (pixels, column, row), N ≥ 1.
+        ref: (M, 2) reference outline points in order along the line, M ≥ 2.
+        start: (2,) starting translation (default 0).
+        iters: ICP iterations.
+
+    Returns:
+        ``(d, rms)``: the (2,) translation (pixels) taking ``points`` onto ``ref`` and the
+        rms distance of the moved points to the line (pixels); None without points.
+    """
+    from scipy.spatial import cKDTree
+
+    P = np.asarray(points, np.float64).reshape(-1, 2)
+    R = np.asarray(ref, np.float64).reshape(-1, 2)
+    if len(P) == 0 or len(R) < 2:
+        return None
+    dense = [R]
+    for a, b in zip(R[:-1], R[1:], strict=True):
+        n = int(np.linalg.norm(b - a) / 0.1)
+        if 1 < n and np.linalg.norm(b - a) < 2.0:
+            s = np.linspace(0.0, 1.0, n + 1)[1:-1, None]
+            dense.append(a + s * (b - a))
+    tree = cKDTree(np.concatenate(dense))
+    d = np.zeros(2) if start is None else np.asarray(start, np.float64).copy()
+    for _ in range(int(iters)):
+        _, j = tree.query(P + d)
+        step = (tree.data[j] - (P + d)).mean(axis=0)
+        d += step
+        if np.hypot(*step) < 1e-4:
+            break
+    dist, _ = tree.query(P + d)
+    return d, float(np.sqrt(np.mean(dist**2)))
+
+
+def revolution_centroid(weights: np.ndarray, rows: np.ndarray, cols: np.ndarray):
+    """Centroid (u, v) (pixels) of the solid of revolution a silhouette outlines about
+    its long axis: the silhouette cut into one-pixel slices across its principal axis
+    of inertia, each slice the disc of its (weighted) chord, at the chord's middle.
+
+    A young merged bubble is two lobes of different size: its vapour's centroid weighs
+    each lobe by its volume (∝ r³), its silhouette's centroid by its area (∝ r²), which
+    pulls it towards the smaller lobe (by 0.15 mm, a tenth of the radius, for lobes of
+    1.0 and 1.3 mm one above the other). The discs weigh the slices by the squared
+    chord, as the volume does; for a sphere or any body of revolution about that axis,
+    seen across it, the centroid is its centre's projection.
+
+    Args:
+        weights: (h, w) cover of each pixel (0..1). rows, cols: (h, w) pixel centres.
+
+    Returns:
+        ``(u, v)`` pixels.
+    """
+    w = np.asarray(weights, np.float64)
+    uu, vv = np.asarray(cols, np.float64), np.asarray(rows, np.float64)
+    s = float(w.sum())
+    cu, cv = float((w * uu).sum() / s), float((w * vv).sum() / s)
+    du, dv = uu - cu, vv - cv
+    cov = np.array([[(w * du * du).sum(), (w * du * dv).sum()], [0.0, (w * dv * dv).sum()]])
+    cov[1, 0] = cov[0, 1]
+    axis = np.linalg.eigh(cov)[1][:, 1]  # the long axis
+    along = du * axis[0] + dv * axis[1]
+    across = -du * axis[1] + dv * axis[0]
+    k = np.floor(along + 0.5).astype(np.int64)
+    k -= k.min()
+    chord = np.bincount(k.ravel(), w.ravel())
+    ok = chord > 0
+    mid = np.bincount(k.ravel(), (w * across).ravel())[ok] / chord[ok]
+    pos = np.bincount(k.ravel(), (w * along).ravel())[ok] / chord[ok]
+    disc = chord[ok] ** 2
+    a, c = float((disc * pos).sum() / disc.sum()), float((disc * mid).sum() / disc.sum())
+    return cu + a * axis[0] - c * axis[1], cv + a * axis[1] + c * axis[0]
+
+
+def lobe_centroids(
+    contrast: np.ndarray,
+    labels: np.ndarray,
+    ids: set[int],
+    ring_px: int = ANCHOR_DEFAULTS["ring_px"],
+) -> dict[int, tuple[float, float, float]]:
+    """:func:`coverage_centroids`' entries of the regions ``ids`` with the centroid of
+    their solid of revolution (:func:`revolution_centroid`, same cover weights)."""
+    lab = np.asarray(labels)
+    c = np.asarray(contrast, dtype=np.float64)
+    ids = {int(b) for b in ids if (lab == b).any()}
+    if not ids:
+        return {}
+    owner = region_owners(lab, ring_px)
+    out = {}
+    for b in sorted(ids):
+        m = lab == b
+        sl = _crop(m, int(ring_px) + 1)
+        w = _cover_weights(m[sl], c[sl], owner[sl] == b, ring_px)
+        vv, uu = np.mgrid[sl]
+        out[b] = (*revolution_centroid(w, vv, uu), float(w.sum()))
+    return out

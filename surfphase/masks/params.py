@@ -155,6 +155,25 @@ ANCHOR_DEFAULTS: dict = {
     # radius; min_visible_tracked above 1: never.
     "min_visible_tracked": 0.25,
     "max_shape_rms": 0.05,
+    # A bubble still without a centre in a view (cut by the frame there, and no frame of
+    # that view shows it whole: it enters or leaves at the session's start or end) gets
+    # one from the sphere fitted to its visible outlines in both views at once
+    # (sphere_centres) when at least this fraction of each view's circle is inside the
+    # frame and each outline's rms distance to its circle is at most max_sphere_rms of
+    # the circle's radius; min_visible_sphere above 1: never.
+    "min_visible_sphere": 0.15,
+    "max_sphere_rms": 0.08,
+    # Where the other view has the bubble's centre and area, the sphere lies on that
+    # centre's ray with that size and only its depth is fitted; where neither has one,
+    # True fits the whole sphere to both views' outlines (its centre drifts with a
+    # spheroid's shape as less of it is inside), False leaves the bubble without a centre.
+    "sphere_both_cut": True,
+    # A bubble born of a merge (both views' events), for this many seconds from the
+    # merge frame (the coalescence time, as associate: merge_lobe_s), has as its
+    # silhouette's centre the centroid of the solid of revolution about its long axis
+    # (lobe_centroids): a young merged bubble is two lobes, whose vapour weighs each
+    # by its volume, not its area; 0: never.
+    "lobe_centroid_s": 0.001,
 }
 
 

@@ -13,7 +13,7 @@ Outputs in ``OUT``:
 * ``instances.csv`` — ``frame, camera, bubble, area, cx, cy, x0, y0, x1, y1, score``
   (pixels; ``score`` is the backend's confidence);
 * ``events.csv`` — ``frame, camera, event, parents, children`` (merge, split, detach);
-* ``anchors.csv`` — ``frame, bubble, x, y, z, reproj_px, size_ratio, cut, low``: each
+* ``anchors.csv`` — ``frame, bubble, x, y, z, reproj_px, size_ratio, r_m, cut, low``: each
   bubble's centre triangulated from its sub-pixel silhouette centroids in the first two
   views (m, lab frame; :mod:`surfphase.masks.anchors`; ``cut``: a view's silhouette was
   cut by its border and its centre is that of the ellipse fitted to the visible
@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -197,6 +197,7 @@ def frame_anchors(
     cameras: Mapping[str, object],
     frames: np.ndarray,
     params: Mapping,
+    young: Mapping[int, set[int]] | None = None,
 ) -> pd.DataFrame:
     """The triangulated centres (:func:`surfphase.masks.anchors.anchor_table`) of the
     first two views' bubbles, from their sub-pixel silhouette centroids; a silhouette
@@ -204,7 +205,11 @@ def frame_anchors(
     its visible outline (:func:`surfphase.masks.anchors.cut_centres`) when at least
     ``anchors: min_visible`` of it is in the frame, else from the shape its track shows
     whole in another frame (:func:`surfphase.masks.anchors.tracked_cut_centres`,
-    ``min_visible_tracked``), and none in that frame otherwise."""
+    ``min_visible_tracked``), else from the sphere both views' outlines agree on
+    (:func:`sphere_cut_centres`), and none in that frame otherwise. The ids of
+    ``young`` (frame position → young merged bubbles, :func:`young_merged`) take the
+    centroid of their silhouette's solid of revolution
+    (:func:`surfphase.masks.anchors.lobe_centroids`)."""
     names = list(stacks)[:2]
     cp, ap = params["classical"], params["anchors"]
     cents, cuts = [], []
@@ -214,6 +219,8 @@ def frame_anchors(
         for t in range(stacks[c].shape[0]):
             con = classical.relative_contrast(stacks[c][t], cp, backgrounds[c])
             cen = anchors.coverage_centroids(con, labels[c][t], int(ap["ring_px"]))
+            if young and young.get(t):
+                cen.update(anchors.lobe_centroids(con, labels[c][t], young[t], int(ap["ring_px"])))
             cut = anchors.border_ids(labels[c][t])  # silhouettes the frame may cut
             fits = anchors.cut_centres(
                 con, labels[c][t], cut - {0}, int(ap["ring_px"]), float(ap["min_visible"])
@@ -237,6 +244,8 @@ def frame_anchors(
         cents.append(per)
         cuts.append(per_cut)
     cams = [cameras[c].undistorted() for c in names]
+    if float(ap["min_visible_sphere"]) <= 1.0 and len(names) == 2:
+        sphere_cut_centres(stacks, labels, backgrounds, cams, cents, cuts, params)
     table = anchors.anchor_table(cams, cents, frames, ap, cuts)
     table["low"] = anchors.low_bottoms(
         table,
@@ -246,6 +255,177 @@ def frame_anchors(
         float(params["associate"]["nucleation_height"]),
     )
     return table
+
+
+def sphere_cut_centres(
+    stacks: Mapping[str, np.ndarray],
+    labels: Mapping[str, np.ndarray],
+    backgrounds: Mapping[str, tuple],
+    cams: Sequence,
+    cents: list[list[dict]],
+    cuts: list[list[set[int]]],
+    params: Mapping,
+) -> None:
+    """Fill in place, in ``cents`` and ``cuts`` (per view, per frame position, as
+    :func:`frame_anchors` builds them), the centres of the bubbles that both first two
+    views see but at least one of them cut by its border without a centre
+    (``anchors: min_visible_sphere``, ``max_sphere_rms``, ``sphere_both_cut``); a
+    view's existing centre is kept.
+
+    * Where the view has the bubble's centre in another frame, its visible outline is
+      laid onto that frame's outline by a translation
+      (:func:`surfphase.masks.anchors.register_outline`; the nearest such frame) and
+      that centre moved with it: a shape fitted anew to each frame's shrinking arc
+      drifts with the bubble's departure from a sphere (0.1 r as it goes from 50 to
+      30 % inside); a moved arc does not, and it continues the centres without a jump.
+    * Else, where the other view has a centre, the sphere on that centre's ray that the
+      cut view's visible outline lies on (:func:`surfphase.masks.anchors.sphere_centres`),
+      in the frame where most of it is inside, moved to the other frames as above.
+    * Else (neither view ever has one), the sphere fitted to both views' outlines in the
+      frame where most of it is inside (the lesser visible share of the two views), its
+      circles moved to the other frames as above.
+    """
+    names = list(stacks)[:2]
+    cp, ap = params["classical"], params["anchors"]
+    ring = int(ap["ring_px"])
+    lo, rms_max = float(ap["min_visible_sphere"]), float(ap["max_sphere_rms"])
+    n = stacks[names[0]].shape[0]
+    cache: dict[int, tuple] = {}
+
+    def outline(t: int, k: int, b: int):
+        if t not in cache:
+            if len(cache) > 8:
+                cache.clear()
+            labs = [np.asarray(labels[c][t]) for c in names]
+            cons = [classical.relative_contrast(stacks[c][t], cp, backgrounds[c]) for c in names]
+            cache[t] = (labs, cons, [anchors.region_owners(lab, ring) for lab in labs])
+        labs, cons, owners = cache[t]
+        return anchors.visible_outline(cons[k], labs[k], owners[k], b, ring)
+
+    # What each view misses: bubble -> frame positions (seen by both, cut in this view).
+    missing: list[dict[int, list[int]]] = [{}, {}]
+    for t in range(n):
+        labs = [np.asarray(labels[c][t]) for c in names]
+        ids = set(np.unique(labs[0]).tolist()) & set(np.unique(labs[1]).tolist())
+        for k in (0, 1):
+            cut = anchors.border_ids(labs[k])
+            for b in sorted(i for i in ids if i >= 1 and i in cut and i not in cents[k][t]):
+                missing[k].setdefault(b, []).append(t)
+    for k in (0, 1):
+        for b, ts in missing[k].items():
+            have = [t for t in range(n) if b in cents[k][t]]
+            _register_frames(k, b, ts, have, cents, cuts, outline, lo, rms_max)
+    for k in (0, 1):
+        for b, ts in missing[k].items():
+            ts = [t for t in ts if b not in cents[k][t] and b in cents[1 - k][t]]
+            vis = {t: outline(t, k, b) for t in ts}
+            vis = {t: v for t, v in vis.items() if v is not None}
+            for t in sorted(vis, key=lambda t: (-vis[t][1], t))[:3]:  # most visible first
+                known = [cents[j][t][b] if j != k else None for j in (0, 1)]
+                pts = [vis[t][0] if j == k else None for j in (0, 1)]
+                cov = [vis[t][1] if j == k else 0.0 for j in (0, 1)]
+                fit = anchors.sphere_centres(cams, pts, cov, known, lo, rms_max)
+                if fit is not None:
+                    _set_centres(cents, cuts, t, b, fit, known)
+                    rest = [f for f in ts if f != t]
+                    _register_frames(k, b, rest, [t], cents, cuts, outline, lo, rms_max)
+                    break
+    both: dict[int, list[int]] = {}
+    for k in (0, 1):
+        for b, ts in missing[k].items():
+            for t in ts:
+                if b not in cents[0][t] and b not in cents[1][t]:
+                    both.setdefault(b, [])
+                    if t not in both[b]:
+                        both[b].append(t)
+    if not ap["sphere_both_cut"]:
+        return
+    for b, ts in sorted(both.items()):
+        vis = {t: [outline(t, k, b) for k in (0, 1)] for t in ts}
+        vis = {t: v for t, v in vis.items() if all(x is not None for x in v)}
+        order = sorted(vis, key=lambda t: (-min(x[1] for x in vis[t]), t))
+        for t in order[:3]:  # the most visible frames first
+            pts, cov = [x[0] for x in vis[t]], [x[1] for x in vis[t]]
+            fit = anchors.sphere_centres(cams, pts, cov, (None, None), lo, rms_max)
+            if fit is not None:
+                _set_centres(cents, cuts, t, b, fit, (None, None))
+                for k in (0, 1):
+                    rest = [f for f in ts if b not in cents[k][f]]
+                    _register_frames(k, b, rest, [t], cents, cuts, outline, lo, rms_max)
+                break
+
+
+def _set_centres(cents, cuts, t: int, b: int, fit, known) -> None:
+    """Enter ``fit``'s entries of the views without a ``known`` centre."""
+    for k in (0, 1):
+        if known[k] is None:
+            cents[k][t][b] = tuple(map(float, fit[k]))
+            cuts[k][t].add(b)
+
+
+def _register_frames(
+    k: int,
+    b: int,
+    frames: Sequence[int],
+    have: Sequence[int],
+    cents,
+    cuts,
+    outline: Callable,
+    lo: float,
+    rms_max: float,
+) -> None:
+    """View ``k``'s centres of bubble ``b`` at the positions ``frames``, each from the
+    nearest position of ``have`` (where the view has its centre and area): the visible
+    outline laid onto that position's outline by a translation
+    (:func:`surfphase.masks.anchors.register_outline`, starting from the translation
+    of the nearest frame done), the centre moved with it, the area kept; where the
+    outline lies within ``rms_max`` of the centre's equivalent radius (rms) and its
+    visible cover is at least ``lo`` of that area. ``outline(t, k, b)``: the view's
+    ``(points, cover)`` at position t, or None."""
+    if not have:
+        return
+    refs: dict[int, tuple] = {}
+    moved: dict[int, dict[int, np.ndarray]] = {}  # reference -> frame -> motion (px)
+    for t in sorted(frames, key=lambda t: (min(abs(t - h) for h in have), t)):
+        t0 = min(have, key=lambda h: (abs(t - h), h))
+        if t0 not in refs:
+            refs[t0] = outline(t0, k, b)
+            moved[t0] = {t0: np.zeros(2)}
+        vis, ref = outline(t, k, b), refs[t0]
+        if vis is None or ref is None or len(vis[0]) < 3:
+            continue
+        done = moved[t0]
+        near = min((f for f in done if (f - t0) * (t - t0) >= 0), key=lambda f: abs(f - t))
+        reg = anchors.register_outline(vis[0], ref[0], -done[near])
+        u, v, area = cents[k][t0][b]
+        r = float(np.sqrt(area / np.pi))
+        if reg is None or reg[1] > rms_max * r or vis[1] < lo * area:
+            continue
+        done[t] = -reg[0]
+        cents[k][t][b] = (u - float(reg[0][0]), v - float(reg[0][1]), float(area))
+        cuts[k][t].add(b)
+
+
+def young_merged(
+    events: pd.DataFrame, views: Sequence[str], n_frames: int, fps: float | None, span_s: float
+) -> dict[int, set[int]]:
+    """``{frame position: ids}`` of the bubbles born of a merge that every one of
+    ``views`` records in ``events`` (``events.csv``'s rows, frames as positions), in the
+    positions less than ``span_s`` seconds (at least one frame) from the merge's first
+    frame, below ``n_frames``; empty without fps or with ``span_s`` ≤ 0."""
+    if not fps or span_s <= 0 or len(events) == 0:
+        return {}
+    n = max(1, int(round(float(span_s) * float(fps))))
+    rows = events[events["event"] == "merge"]
+    born: dict[int, int] = {}
+    for f, ch in zip(rows["frame"].astype(int), rows["children"], strict=True):
+        for c in str(ch).split("+"):
+            born[int(c)] = min(born.get(int(c), f), f)
+    out: dict[int, set[int]] = {}
+    for b in merged_in_every_view(events, views):
+        for k in range(born[b], min(born[b] + n, int(n_frames))):
+            out.setdefault(k, set()).add(b)
+    return out
 
 
 def merged_in_every_view(events: pd.DataFrame, views: Sequence[str]) -> set[int]:
@@ -354,7 +534,10 @@ def _anchor_and_drop(
     anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "low", "position"])
     if len(stacks) < 2:
         return instances, anchor_tab, 0, []
-    anchor_tab = frame_anchors(stacks, labels, bgs, cameras, frames, p)
+    young = young_merged(
+        events, list(stacks)[:2], len(frames), fps, float(p["anchors"]["lobe_centroid_s"])
+    )
+    anchor_tab = frame_anchors(stacks, labels, bgs, cameras, frames, p, young)
     pos = {int(f): k for k, f in enumerate(frames)}
     anchor_tab["position"] = [pos[int(f)] for f in anchor_tab["frame"]]
     merged = merged_in_every_view(events, list(stacks)[:2])

@@ -63,3 +63,41 @@ def mesh_stats(faces: np.ndarray, n_verts: int) -> dict:
     labels = vertex_components(faces, n_verts)
     components = len(np.unique(labels[np.unique(faces)]))
     return {"components": int(components), "watertight": is_closed(faces)}
+
+
+def drop_fragments(
+    verts: np.ndarray, faces: np.ndarray, min_frac: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """One bubble's mesh without the pieces much smaller than its largest.
+
+    A bubble is one body of vapour. Where two views meet at a small angle, the hull's
+    end slices (a few pixels of silhouette chord) are placed in depth by strips whose
+    pixel error that angle multiplies, and come out as slivers beside the bubble.
+
+    Args:
+        verts: (V, 3) metres. faces: (F, 3) vertex indices.
+        min_frac: a connected component whose bounding-box diagonal is less than this
+            fraction of the largest component's is dropped (0: keep all).
+
+    Returns:
+        (V', 3) vertices and (F', 3) faces of the kept components (unused vertices
+        dropped, faces renumbered).
+    """
+    from surfphase.mesh.measure import vertex_components
+
+    v = np.asarray(verts, np.float64)
+    f = np.asarray(faces, np.int64).reshape(-1, 3)
+    if len(f) == 0 or min_frac <= 0:
+        return v, f
+    comp = vertex_components(f, len(v))
+    fc = comp[f[:, 0]]
+    diag = {
+        int(c): float(np.linalg.norm(np.ptp(v[np.unique(f[fc == c])], axis=0)))
+        for c in np.unique(fc)
+    }
+    top = max(diag.values())
+    keep_f = f[np.isin(fc, [c for c, d in diag.items() if d >= min_frac * top])]
+    used = np.unique(keep_f)
+    remap = np.full(len(v), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return v[used], remap[keep_f]

@@ -20,6 +20,11 @@ DEFAULTS: dict = {
     "n_orbit": 11,
     "orbit_step_deg": 30.0,
     "min_component_m": 3.0e-4,  # components with a smaller bounding-box diagonal go
+    # ... and, in each bubble's mesh, components whose bounding-box diagonal is less than
+    # this fraction of its largest component's (a bubble is one body: these are slivers
+    # of the hull's end slices, misplaced in depth where the views meet at a small
+    # angle; 0: keep all).
+    "min_piece_frac": 0.3,
     "smooth_steps": 5,  # Taubin steps
     "max_hole_edges": 30,
     "speed_max": 0.4,  # m/s, top of the colour map; "session" = max vertex speed seen
@@ -67,5 +72,10 @@ DEFAULTS: dict = {
     # ... and one less of which is inside than min_visible_tracked, the circle of the
     # radius its track's nearest frame gave it so, placed on its visible outline.
     "complete_cut_tracked_circles": True,
+    # ... and one still without a shape, the image of the sphere the mask stage fitted
+    # to it (anchors.csv: its centre x, y, z and radius r_m in the frame; a bubble never
+    # seen whole has its centre from its outlines in both views), where its visible
+    # part fits inside that circle.
+    "complete_cut_spheres": True,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }

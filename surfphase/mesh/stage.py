@@ -47,9 +47,10 @@ import pandas as pd
 from surfphase.cameras import Camera
 from surfphase.folders.fit import BUBBLES, SURFELS, read_fit_bubbles, read_fit_surfels
 from surfphase.folders.ingest import read_ingest
+from surfphase.folders.masks import ANCHORS as MASKS_ANCHORS
 from surfphase.folders.masks import INFO as MASKS_INFO
 from surfphase.folders.masks import INSTANCES as MASKS_INSTANCES
-from surfphase.folders.masks import labels_path, read_masks
+from surfphase.folders.masks import labels_path, read_anchors, read_masks
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text, part_dir, replace_dir
 from surfphase.masks.params import ANCHOR_DEFAULTS
 from surfphase.mesh.cleanup import mesh_stats
@@ -127,6 +128,7 @@ class _Session:
     centres: dict[int, dict[int, np.ndarray]] | None = None  # frame → bubble → (3,) m
     cut_rules: dict | None = None  # masks: anchors: rules of the cut silhouettes (complete_cut)
     areas: dict[int, dict[int, list[float]]] | None = None  # frame → bubble → per view px
+    spheres: dict[int, dict[int, tuple]] | None = None  # frame → bubble → ((3,) m, r m)
 
 
 def _open_session(
@@ -177,6 +179,12 @@ def _open_session(
     if p["surface"] == "hull" and p["complete_cut"] and masks_dir is not None:
         cut_rules = masks_anchor_rules(masks_dir)
         hashed += [f for f in [masks_dir / MASKS_INFO] if f.is_file()]
+    spheres = None
+    if cut_rules is not None and p["complete_cut_spheres"]:
+        anchors_tab = read_anchors(masks_dir, f"session {session}")
+        if anchors_tab is not None and "r_m" in anchors_tab.columns:
+            spheres = anchor_spheres(anchors_tab)
+            hashed.append(Path(masks_dir) / MASKS_ANCHORS)
     areas = None
     if p["surface"] == "hull" and p["hull_native_area"] and masks_dir is not None:
         inst = Path(masks_dir) / MASKS_INSTANCES
@@ -187,8 +195,21 @@ def _open_session(
     if hashed:
         key = hashlib.sha256("".join([key, *map(_file_hash, hashed)]).encode()).hexdigest()
     return _Session(
-        surfels, inputs, session, p, dev, key, picks, masks, centres, cut_rules, areas
+        surfels, inputs, session, p, dev, key, picks, masks, centres, cut_rules, areas, spheres
     )
+
+
+def anchor_spheres(anchors_tab: pd.DataFrame) -> dict[int, dict[int, tuple]]:
+    """``{frame: {bubble: ((3,) centre m, radius m)}}`` of a masks folder's
+    ``anchors.csv`` rows with ids ≥ 1 and a finite centre and radius ``r_m``."""
+    out: dict[int, dict[int, tuple]] = {}
+    rows = anchors_tab[anchors_tab["bubble"] >= 1]
+    xyz = rows[["x", "y", "z"]].to_numpy(np.float64)
+    r = rows["r_m"].to_numpy(np.float64)
+    for f, b, c, rr in zip(rows["frame"], rows["bubble"], xyz, r, strict=True):
+        if np.isfinite(c).all() and np.isfinite(rr) and rr > 0:
+            out.setdefault(int(f), {})[int(b)] = (c, float(rr))
+    return out
 
 
 def silhouette_areas(
@@ -233,22 +254,49 @@ def masks_anchor_rules(masks_dir: Path) -> dict:
 def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], list[np.ndarray]]:
     """The input cameras and (H, W) labels the hull of position ``t`` is made from: with
     ``complete_cut``, each view's silhouettes the border cuts drawn whole beyond it, on a
-    grown grid (:mod:`surfphase.mesh.cut`); ``cache``: per view, its whole shapes."""
+    grown grid (:mod:`surfphase.mesh.cut`; with ``complete_cut_spheres`` those without
+    a shape of their own as the image of the mask stage's sphere, :func:`sphere_shapes`);
+    ``cache``: per view, its whole shapes."""
     labels = [np.asarray(m[t]) for m in s.masks]
     if s.cut_rules is None:
         return list(s.inputs), labels
-    views = [
-        completed_view(
-            cam,
-            lab,
-            cut_shapes(
-                m, t, s.cut_rules, c, bool(s.p["complete_cut_circles"]),
-                bool(s.p["complete_cut_tracked_circles"]),
-            ),  # fmt: skip
-        )
-        for cam, lab, m, c in zip(s.inputs, labels, s.masks, cache, strict=True)
-    ]
+    spheres = s.spheres.get(int(s.surfels["frame"][t]), {}) if s.spheres else {}
+    views = []
+    for cam, lab, m, c in zip(s.inputs, labels, s.masks, cache, strict=True):
+        shapes = cut_shapes(
+            m, t, s.cut_rules, c, bool(s.p["complete_cut_circles"]),
+            bool(s.p["complete_cut_tracked_circles"]),
+        )  # fmt: skip
+        shapes.update(sphere_shapes(cam.undistorted(), lab, spheres, set(shapes)))
+        views.append(completed_view(cam, lab, shapes))
     return [v[0] for v in views], [v[1] for v in views]
+
+
+def sphere_shapes(
+    cam: Camera, lab: np.ndarray, spheres: dict[int, tuple], done: set[int]
+) -> dict[int, tuple]:
+    """Circles ``(u, v, ρ, ρ, 0)`` (pixels of ``lab``'s grid) of the bubbles the border
+    cuts in one view's (H, W) labels, not in ``done``, that have a sphere in ``spheres``
+    (``{id: ((3,) centre m, radius m)}``): its image in the undistorted ``cam``
+    (centre's projection, radius f·r / depth), where the visible part fits inside it
+    (at most 2 % of its pixels outside)."""
+    from surfphase.masks.anchors import border_ids
+
+    out: dict[int, tuple] = {}
+    f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+    for b in sorted(border_ids(lab) - set(done)):
+        if b < 1 or b not in spheres:
+            continue
+        X, r = spheres[b]
+        z = float(cam.world_to_camera(np.asarray(X)[None])[0, 2])
+        if z <= 0:
+            continue
+        u, v = cam.project(np.asarray(X)[None], distort=False)[0]
+        rho = f * r / z
+        ys, xs = np.nonzero(lab == b)
+        if np.mean(np.hypot(xs - u, ys - v) > rho + 0.5) <= 0.02:
+            out[b] = (float(u), float(v), rho, rho, 0.0)
+    return out
 
 
 def bubble_centres(table: pd.DataFrame) -> dict[int, dict[int, np.ndarray]]:

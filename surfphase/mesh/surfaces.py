@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from surfphase.cameras import Camera, orbit_cameras
-from surfphase.mesh.cleanup import clean_mesh
+from surfphase.mesh.cleanup import clean_mesh, drop_fragments
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
 from surfphase.mesh.hull import bubble_hull_volume, bubble_pieces, elliptic_hull_distance
 
@@ -144,6 +144,7 @@ def hull_mesh_frame(
         v, f = clean_mesh(
             v, f, float(p["min_component_m"]), int(p["smooth_steps"]), int(p["max_hole_edges"])
         )
+        v, f = drop_fragments(v, f, float(p["min_piece_frac"]))
         if len(f) and areas and b >= 1 and b in areas:
             centre_b = centres[b] if centres and b in centres else v.mean(axis=0)
             v = scale_to_silhouettes(
