@@ -95,10 +95,7 @@ def coverage_centroids(
     c = np.asarray(contrast, dtype=np.float64)
     out: dict[int, tuple[float, float, float]] = {}
     ids = np.unique(lab[lab >= 0])
-    owner = lab
-    if ring_px > 0 and len(ids):
-        _, (ri, ci) = ndi.distance_transform_edt(lab < 0, return_indices=True)
-        owner = lab[ri, ci]
+    owner = region_owners(lab, ring_px) if len(ids) else lab
     for b in ids:
         m = lab == b
         sl = _crop(m, int(ring_px) + 1)
@@ -825,8 +822,8 @@ def revolution_centroid(weights: np.ndarray, rows: np.ndarray, cols: np.ndarray)
     s = float(w.sum())
     cu, cv = float((w * uu).sum() / s), float((w * vv).sum() / s)
     du, dv = uu - cu, vv - cv
-    cov = np.array([[(w * du * du).sum(), (w * du * dv).sum()], [0.0, (w * dv * dv).sum()]])
-    cov[1, 0] = cov[0, 1]
+    cuv = float((w * du * dv).sum())
+    cov = np.array([[(w * du * du).sum(), cuv], [cuv, (w * dv * dv).sum()]])
     axis = np.linalg.eigh(cov)[1][:, 1]  # the long axis
     along = du * axis[0] + dv * axis[1]
     across = -du * axis[1] + dv * axis[0]

@@ -34,6 +34,7 @@ from surfphase.cameras import Camera
 from surfphase.masks.anchors import (
     _MIN_OUTLINE_POINTS,
     border_ids,
+    circle_fit,
     nearest_whole,
     outline_ellipse,
     shape_centre,
@@ -229,17 +230,16 @@ def fit_circle_of_radius(
 def fit_circle(points: np.ndarray) -> tuple[float, float, float, float] | None:
     """``(u, v, r, rms)``: the circle nearest (N, 2) outline points (pixels) in the least
     squares of their distances to it (``scipy.optimize.least_squares`` from the
-    algebraic fit), and the rms of those distances; None where it fails."""
+    algebraic fit, :func:`surfphase.masks.anchors.circle_fit`), and the rms of those
+    distances; None where it fails."""
     from scipy.optimize import least_squares
 
     P = np.asarray(points, np.float64)
-    if len(P) < 3:
+    start = circle_fit(P)
+    if start is None:
         return None
-    A = np.column_stack([2 * P, np.ones(len(P))])
-    sol = np.linalg.lstsq(A, (P**2).sum(axis=1), rcond=None)[0]
-    r0 = float(np.sqrt(max(sol[2] + sol[0] ** 2 + sol[1] ** 2, 1e-12)))
     res = least_squares(
-        lambda c: np.linalg.norm(P - c[:2], axis=1) - c[2], np.r_[sol[:2], r0], method="lm"
+        lambda c: np.linalg.norm(P - c[:2], axis=1) - c[2], np.array(start), method="lm"
     )
     if not res.success or not np.isfinite(res.x).all() or res.x[2] <= 0:
         return None
