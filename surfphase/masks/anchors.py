@@ -696,26 +696,23 @@ def sphere_centres(
     focal = [float(np.sqrt(c.K[0, 0] * c.K[1, 1])) for c in cams]
     start = [known[k][:2] if known[k] is not None else circles[k][:2] for k in (0, 1)]
     X0 = triangulate(cams, [np.array([u]) for u in start])[0]
-    if (
-        not np.all(np.isfinite(X0))
-        or min(float(c.world_to_camera(X0[None])[0, 2]) for c in cams) <= 0
-    ):
-        return None
 
     def depth(k: int, X: np.ndarray) -> float:
         return float(cams[k].world_to_camera(X[None])[0, 2])
+
+    if not np.all(np.isfinite(X0)) or min(depth(k, X0) for k in (0, 1)) <= 0:
+        return None
 
     if len(fitted) == 1:
         j = 1 - fitted[0]
         cam, (u, v, area) = cams[j], known[j]
         ray = cam.R.T @ np.linalg.solve(cam.K, np.array([u, v, 1.0]))
         ray /= np.linalg.norm(ray)
-        r_px = float(np.sqrt(area / np.pi))
         x0 = np.array([float((X0 - cam.center) @ ray)])
 
         def sphere(x: np.ndarray) -> tuple[np.ndarray, float]:
             X = cam.center + x[0] * ray
-            return X, r_px * depth(j, X) / focal[j]
+            return X, apparent_size(cam, X, area)
 
         scale = np.array([max(x0[0], 1e-6) * 0.01])
     else:
