@@ -73,3 +73,40 @@ def test_a_slow_bubble_is_free_from_when_it_leaves_the_plate(tmp_path):
     assert set(ids["cam0"][:rest]) == {0}
     assert (events["event"] == "detach").sum() == 2  # one per view, at the new date
     assert set(events.loc[events["event"] == "detach", "frame"]) == {first}
+
+
+def test_a_bubble_that_hops_off_the_plate_and_lands_back_stays_attached(tmp_path):
+    r, height = 0.0008, 3e-4
+
+    def hopping(t):  # its bottom above the nucleation height in frames 6 and 7 only
+        return np.array([0.0005, r + (4e-4 if t in (6, 7) else 0.0), 0.0]), r
+
+    n = 14
+    truth = write_ingest(tmp_path, [hopping], n)
+    labels, scores = _segment(tmp_path, truth)
+    params = {**ASSOCIATE_DEFAULTS, "nucleation_height": height}
+    out, _inst, events = associate(labels, scores, rig(128), params, fps=1000.0)
+    for c in truth:
+        assert _ids(truth[c], out[c], 0) == [0] * n
+    assert (events["event"] == "detach").sum() == 0
+
+
+def test_a_slow_bubble_whose_bottom_dips_under_the_height_rule_stays_free(tmp_path):
+    r, rest, rise, height = 0.0008, 4, 4e-5, 3e-4
+
+    def dipping(t):  # above the height from frame 11, lower in frame 13, the last
+        y = r + rise * max(0, t - rest) - (1.5e-4 if t == 13 else 0.0)
+        return np.array([0.0005, y, 0.0]), r
+
+    n = 14
+    truth = write_ingest(tmp_path, [dipping], n)
+    labels, scores = _segment(tmp_path, truth)
+    params = {**ASSOCIATE_DEFAULTS, "nucleation_height": height}
+    out, _inst, events = associate(labels, scores, rig(128), params, fps=1000.0)
+    ids = {c: _ids(truth[c], out[c], 0) for c in truth}
+    assert ids["cam0"] == ids["cam1"]
+    free = [t for t, b in enumerate(ids["cam0"]) if b is not None and b >= 1]
+    assert rest <= free[0] < 11
+    assert free == list(range(free[0], n))  # frame 13 included: one bubble throughout
+    assert len(set(ids["cam0"][free[0]:])) == 1
+    assert (events["event"] == "detach").sum() == 2

@@ -15,7 +15,9 @@ Instances come from a segmentation backend as per-camera label stacks
    plate: it belongs to bubble 0, the nucleation region. A bubble that rises out of it
    slowly in frames is free from the knee of the hinge (resting, then rising) fitted to
    its bottom heights over the attached frames it continues and its first frames
-   (:mod:`surfphase.masks.detach`): the attached frames after the knee become its own.
+   (:mod:`surfphase.masks.detach`): the attached frames after the knee become its own,
+   and so do the attached ones continuing its track whose bottoms keep to the rise. A
+   track continued by bottoms back at the resting level never left: it is attached.
 3. **Through time, per view.** Free instances are tracked frame to frame: each
    track's mask is shifted by its last displacement (constant velocity) and matched
    to the next frame's instances by mask IoU (Hungarian). A track hidden behind
@@ -332,9 +334,9 @@ def associate(
         heights = {k: float(h) for (ka, kb), h in zip(keys, hts, strict=True) for k in (ka, kb)}
         partner = {ka: kb for ka, kb in keys} | {kb: ka for ka, kb in keys}
         two = {c: tracks[c] for c in names[:2]}
-        freed = detach.freed_instances(labels, two, heights, partner, attached, fps, p)
-        if freed:
-            attached = attached - freed
+        freed, landed = detach.detachments(labels, two, heights, partner, attached, fps, p)
+        if freed or landed:
+            attached = (attached - freed) | landed
             tracks = _track_views(labels, inst, names, attached, p)
     if len(names) >= 2:
         tracks.update(reconcile_merges(tracks, labels, pairs, names[0], names[1], p, fps))

@@ -19,6 +19,15 @@ other views' partners. Heights further below the plate than ``nucleation_height`
 are left out of the fit: such a bottom is the edge of the plate's image, which hides
 the bubble's, not the bubble's own. The hinge's knee is as good as the heights
 around it, within about a frame.
+
+A bubble does not land back on the plate. Where the track's last sighting is continued,
+in the next frames, by attached instances (each overlapping the one before), each of
+them is weighed against the hinge: a bottom nearer its rising line than its resting
+level is the bubble still rising, too slowly yet for the height rule, and is freed
+(the track carries on); one nearer the resting level means the bubble never left (the
+heights that freed it were the triangulation's error: a small bubble growing on the
+plate, its bottom hidden by the plate's image, the two views' lowest points then not
+one point), and the track's sightings are given back to the nucleation region.
 """
 
 from __future__ import annotations
@@ -45,11 +54,13 @@ def fit_frames(fps: float | None, params: Mapping) -> int:
     return max(least, math.ceil(float(params["detach_fit_s"]) * float(fps) - 1e-9))
 
 
-def left_plate_at(frames: np.ndarray, heights: np.ndarray, step: float = 0.05) -> float | None:
-    """The frame (fractional) a bubble's bottom leaves the plate: the hinge
-    ``h = h0 + v · max(0, t − t0)`` (resting at the level ``h0`` the plate contact
-    reads at, then rising at a steady ``v`` > 0) fitted to ``heights`` (K,) metres at
-    ``frames`` (K,) by least squares.
+def hinge_fit(
+    frames: np.ndarray, heights: np.ndarray, step: float = 0.05
+) -> tuple[float, float, float] | None:
+    """The hinge ``h = h0 + v · max(0, t − t0)`` (resting at the level ``h0`` the plate
+    contact reads at, then rising at a steady ``v`` > 0) fitted to ``heights`` (K,)
+    metres at ``frames`` (K,) by least squares: ``(t0, h0, v)``, ``t0`` in (fractional)
+    frames, ``h0`` in m, ``v`` in m per frame.
 
     ``t0`` is searched every ``step`` frames from the first frame to the third-last,
     so at least two heights lie on the rising part; ``None`` with fewer than 3
@@ -69,10 +80,20 @@ def left_plate_at(frames: np.ndarray, heights: np.ndarray, step: float = 0.05) -
     ok = (sxx > 0) & (sxh > 0)
     gain = np.where(ok, sxh**2 / np.where(ok, sxx, 1.0), -np.inf)
     k = int(np.argmax(gain))
-    return float(grid[k]) if np.isfinite(gain[k]) else None
+    if not np.isfinite(gain[k]):
+        return None
+    v = float(sxh[k] / sxx[k])
+    return float(grid[k]), float(h.mean() - v * x[k].mean()), v
 
 
-def freed_instances(
+def left_plate_at(frames: np.ndarray, heights: np.ndarray, step: float = 0.05) -> float | None:
+    """The frame (fractional) a bubble's bottom leaves the plate: the knee ``t0`` of
+    :func:`hinge_fit`, or ``None``."""
+    fit = hinge_fit(frames, heights, step)
+    return None if fit is None else fit[0]
+
+
+def detachments(
     labels: Mapping[str, np.ndarray],
     tracks: Mapping[str, Tracks],
     pair_heights: Mapping[Key, float],
@@ -80,8 +101,9 @@ def freed_instances(
     attached: set[Key],
     fps: float | None,
     params: Mapping,
-) -> set[Key]:
-    """The attached instances that belong to a detached bubble already free.
+) -> tuple[set[Key], set[Key]]:
+    """The attached instances that belong to a detached bubble already free, and the
+    free ones of tracks that never left the plate.
 
     Args:
         labels: ``{camera: (T, H, W) int}`` instance labels (−1 background).
@@ -95,10 +117,17 @@ def freed_instances(
             ``detach_fit_s``, ``detach_fit_min_frames``, ``nucleation_height``.
 
     Returns:
-        The instances (of both views) to free, a subset of ``attached``.
+        ``(freed, landed)``: the instances (of both views) to free, a subset of
+        ``attached``; those to attach again, none of them in ``attached``.
     """
     n_fit = fit_frames(fps, params)
+    low = -float(params["nucleation_height"])
     freed: set[Key] = set()
+    landed: set[Key] = set()
+
+    def with_partners(keys: list[Key]) -> set[Key]:
+        return set(keys) | {o for k in keys if (o := partner.get(k)) is not None}
+
     for cam, tr in tracks.items():
         sightings: dict[int, list[tuple[int, int]]] = {}
         for (t, loc), tid in tr.track_of.items():
@@ -107,32 +136,40 @@ def freed_instances(
         for c, t, loc in attached:
             if c == cam:
                 att_at.setdefault(t, []).append(loc)
+        lab = labels[cam]
         for _t, kind, _par, kids in tr.events:
             if kind != "detach" or not kids or kids[0] not in sightings:
                 continue
-            seen = sorted(sightings[kids[0]])[:n_fit]
-            lab = labels[cam]
+            track = sorted(sightings[kids[0]])
+            seen = track[:n_fit]
             chain = _walk_back(lab, att_at, seen[0]) + _fill_gaps(lab, att_at, seen)
             # A bottom further below the plate than its triangulation error is not the
             # bubble's (the plate's image hides it): it does not date anything.
-            low = -float(params["nucleation_height"])
             pts = [
                 (t, h)
                 for t, loc in chain + seen
                 if (h := pair_heights.get((cam, t, loc), -np.inf)) >= low
             ]
-            t0 = left_plate_at(np.array([q[0] for q in pts]), np.array([q[1] for q in pts]))
-            if t0 is None:
+            fit = hinge_fit(np.array([q[0] for q in pts]), np.array([q[1] for q in pts]))
+            if fit is None:
                 continue
-            for t, loc in chain:
-                if t <= t0:
-                    continue
-                key = (cam, t, loc)
-                freed.add(key)
-                other = partner.get(key)
-                if other is not None and other in attached:
-                    freed.add(other)
-    return freed & attached
+            t0, h0, v = fit
+            after = _follow(lab, att_at, track[-1], range(track[-1][0] + 1, lab.shape[0]))
+            rising = []
+            for t, loc in after:
+                h = pair_heights.get((cam, t, loc))
+                if h is None or h < low:  # not paired, or hidden: nothing to weigh it by
+                    break
+                if h < h0 + 0.5 * v * (t - t0):  # nearer resting than rising: it landed
+                    landed |= with_partners([(cam, tt, ll) for tt, ll in track])
+                    rising = None
+                    break
+                rising.append((t, loc))
+            if rising is None:
+                continue
+            freed |= with_partners([(cam, t, loc) for t, loc in chain if t > t0] +
+                                   [(cam, t, loc) for t, loc in rising])  # fmt: skip
+    return (freed & attached) - landed, landed - attached
 
 
 def _overlapping(lab: np.ndarray, t: int, locals_: list[int], mask: np.ndarray) -> int | None:
