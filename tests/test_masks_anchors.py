@@ -293,6 +293,17 @@ def test_anchored_table_drops_runs_shorter_than_min_track_frames():
     assert list(out["frame"]) == [0, 1]
 
 
+def test_anchored_table_without_any_anchor_keeps_the_nucleation_region():
+    # No bubble has a centre both views agree on (every pair inconsistent): the table
+    # holds the nucleation region's frames only, smoothing or not.
+    empty = pd.DataFrame(columns=["frame", "bubble", "x", "y", "z", "low", "reproj_px"])
+    table = _surfel_table(np.arange(6), [0, 1])
+    for window in (0.0, 0.005):
+        out = anchored_table(table, empty, {1, 2}, window, 2)
+        assert list(out["bubble"]) == [0, 0] and list(out["frame"]) == [1, 2]
+        assert list(out.columns) == list(table.columns)
+
+
 def ellipse_cover(
     h: int, w: int, u0: float, v0: float, a: float, b: float, theta: float, ss: int = 16
 ) -> np.ndarray:

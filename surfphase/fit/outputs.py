@@ -309,7 +309,7 @@ def anchored_table(
     bub = bub.sort_values(["bubble", "frame"], kind="stable").reset_index(drop=True)
     f = bub["frame"].to_numpy(np.int64)
     b = bub["bubble"].to_numpy(np.int64)
-    new_run = np.r_[True, (b[1:] != b[:-1]) | (f[1:] != f[:-1] + 1)]
+    new_run = np.r_[True, (b[1:] != b[:-1]) | (f[1:] != f[:-1] + 1)][: len(b)]
     seg = np.cumsum(new_run)
     need = int(min_track_frames) if n_frames is None else min(int(min_track_frames), n_frames)
     keep = np.bincount(seg)[seg] >= need

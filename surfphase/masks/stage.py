@@ -150,6 +150,37 @@ def check_bubbles_found(meta: Mapping, ingest_dir: Path, instances, cameras: Seq
             )
 
 
+def check_centres_found(
+    meta: Mapping, ingest_dir: Path, instances: pd.DataFrame, table: pd.DataFrame,
+    cameras: Sequence[str],
+) -> list[str]:  # fmt: skip
+    """Warn about the bubbles both views see that get no centre in any frame: the two
+    views never agree on them (``table``: the consistent anchors), so ``bubbles.csv``
+    will not report them. ``instances``: the association's, before any was dropped.
+    Returns the warnings (also issued with :func:`warnings.warn`)."""
+    session = meta.get("session", Path(ingest_dir).name)
+    seen = [set(instances.loc[(instances.camera == c) & (instances.bubble > 0), "bubble"])
+            for c in cameras[:2]]  # fmt: skip
+    if len(seen) < 2:
+        return []
+    lost = sorted((seen[0] & seen[1]) - set(table["bubble"].astype(int)))
+    if not lost:
+        return []
+    what = "no bubble will be reported" if table.empty else "bubbles.csv leaves it out"
+    if len(lost) > 1 and not table.empty:
+        what = "bubbles.csv leaves them out"
+    note = (
+        f"session {session}: {'bubbles' if len(lost) > 1 else 'bubble'} "
+        f"{', '.join(map(str, lost))} {'are' if len(lost) > 1 else 'is'} seen by cameras "
+        f"{cameras[0]} and {cameras[1]} but in no frame do the two views agree on their "
+        f"centre (sizes or positions differ: one view may see two bubbles as one, or a "
+        f"bubble the other does not); {what} — see the mask overlays "
+        f"({_where(meta, ingest_dir, cameras[0])})"
+    )
+    warnings.warn(note, stacklevel=2)
+    return [note]
+
+
 def segment_stack(
     stack: np.ndarray, params: Mapping, backend=None
 ) -> tuple[np.ndarray, list, tuple[np.ndarray, np.ndarray]]:
@@ -608,10 +639,16 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
         labels, scores, seg.cameras, p["associate"], plates, ingest.fps
     )
     check_bubbles_found(meta, ingest_dir, instances, list(stacks))
+    associated = instances.copy()
     instances, anchor_tab, dropped, static = _anchor_and_drop(
         stacks, bubble_labels, instances, events, bgs, seg.cameras, ingest.frame_indices,
         ingest.fps, p,
     )  # fmt: skip
+    if len(stacks) >= 2:
+        blank_notes += check_centres_found(
+            meta, ingest_dir, associated[~associated.bubble.isin(static)], anchor_tab,
+            list(stacks),
+        )  # fmt: skip
     if seg is not ingest:
         bubble_labels, instances = _to_fit_size(bubble_labels, instances, stacks, ingest.stacks)
     info = {
