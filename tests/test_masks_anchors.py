@@ -749,3 +749,54 @@ def test_a_spheroid_leaving_both_views_keeps_its_velocity():
                      [["x", "y", "z"]].to_numpy(float)[0])  # fmt: skip
     drift = np.linalg.norm(np.diff(alone, axis=0) - step, axis=1) / np.linalg.norm(step)
     assert drift.max() > 0.1, drift
+
+
+@pytest.mark.parametrize("lateral", [0.0006, 0.0012])
+def test_two_bubbles_one_view_fuses_get_their_circles_from_its_outline(lateral):
+    """Two spheres (r 1.1 and 0.9 mm) one behind the other for cam1 (4 mm apart along
+    its line of sight, ``lateral`` across it), apart for cam0, 40° away. From cam0's
+    whole silhouettes (centres and areas) and the fused silhouette's visible outline in
+    cam1, each sphere's circle in cam1 is within 0.25 px of its analytic projection
+    (radius within 3 %), the depths order them as they are, and the triangulated
+    centres are within 0.05 r of the truth."""
+    from surfphase.masks.anchors import occluded_centres, visible_outline
+
+    c0, _ = _rig()
+    target = np.array([0.0, 0.005, 0.0])
+    a = np.deg2rad(40.0)
+    eye = target + (c0.center - target) @ np.array(
+        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
+    )
+    c1 = look_at("cam1", eye, target, 880.0, 160, 120)
+    d = (target - c1.center) / np.linalg.norm(target - c1.center)
+    side = np.cross(d, [0.0, 1.0, 0.0])
+    X = [target - 0.002 * d, target + 0.002 * d + lateral * side / np.linalg.norm(side)]
+    r = [0.0011, 0.0009]
+
+    def circle(cam, x, rr):
+        uv = cam.project(x[None], distort=False)[0]
+        return uv, rr * np.sqrt(cam.K[0, 0] * cam.K[1, 1]) / cam.world_to_camera(x[None])[0, 2]
+
+    known = {}
+    for b, x, rr in zip((4, 7), X, r, strict=True):
+        uv, rp = circle(c0, x, rr)
+        known[b] = (float(uv[0]), float(uv[1]), float(np.pi * rp * rp))
+    truth = [circle(c1, x, rr) for x, rr in zip(X, r, strict=True)]
+    assert np.hypot(*(truth[0][0] - truth[1][0])) < truth[0][1] + truth[1][1]  # fused
+    cover = np.maximum(*(disk_cover(120, 160, uv[0], uv[1], rp) for uv, rp in truth))
+    labels = np.where(cover >= 0.5, 4, -1)
+    assert ndi.label(labels == 4)[1] == 1
+    pts, _cov = visible_outline(0.6 * cover, labels, labels, 4, 0)
+    got = occluded_centres([c0, c1], 1, pts, known)
+    assert got is not None
+    for b, (uv, rp) in zip((4, 7), truth, strict=True):
+        u, v, area, _z = got[b]
+        assert np.hypot(u - uv[0], v - uv[1]) < 0.25, (b, u - uv[0], v - uv[1])
+        assert np.sqrt(area / np.pi) == pytest.approx(rp, rel=0.03)
+    assert got[4][3] < got[7][3]  # the first sphere is in front
+    tab = anchor_table([c0, c1], [[known], [{b: got[b][:3] for b in got}]], np.array([0]))
+    for b, x, rr in zip((4, 7), X, r, strict=True):
+        row = tab[tab.bubble == b]
+        assert np.linalg.norm(row[["x", "y", "z"]].to_numpy(float)[0] - x) < 0.05 * rr
+    # One bubble alone does not explain the outline: no fit with the other left out.
+    assert occluded_centres([c0, c1], 1, pts, {4: known[4]}) is None

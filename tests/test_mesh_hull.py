@@ -414,3 +414,41 @@ def test_silhouette_areas_sum_pieces_and_leave_out_cut_and_half_seen_bubbles():
     cols = ["frame", "camera", "bubble", "area", "x0", "y0", "x1", "y1"]
     got = silhouette_areas(pd.DataFrame(rows, columns=cols), cams)
     assert got == {4: {1: [120.5, 110.0]}, 5: {1: [101.0, 112.0]}}
+
+
+def test_a_bubble_hidden_behind_another_in_one_view_is_meshed_whole():
+    """Two spheres (1 and 0.8 mm) one behind the other for cam1 (3 mm apart along its
+    line of sight, 0.7 mm across), apart for cam0: cam1's labels show the back one as a
+    crescent. Meshed from those labels, the back sphere's hull is short; with the pixels
+    its disc covers behind the front one added in cam1 (``hidden``), its volume is
+    within 8 % of 4/3 π r³ and its bisector/across extent within 0.15 of 1."""
+    from surfphase.cameras import look_at
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+
+    cams = []
+    for k, az in enumerate((-20.0, 20.0)):
+        a, e = np.radians(az), np.radians(6.0)
+        eye = CENTRE + 0.1 * np.array([np.sin(a) * np.cos(e), np.sin(e), -np.cos(a) * np.cos(e)])
+        cams.append(look_at(f"cam{k}", eye, CENTRE, 1500.0, 240, 240))
+    d = (CENTRE - cams[1].center) / np.linalg.norm(CENTRE - cams[1].center)
+    side = np.cross(d, [0.0, 1.0, 0.0])
+    back_c = CENTRE + 0.0015 * d + 0.0007 * side / np.linalg.norm(side)
+    spheres = {3: (CENTRE - 0.0015 * d, 1e-3), 5: (back_c, 0.8e-3)}
+    labels = [_sphere_labels(c, spheres) for c in cams]
+    assert 0 < (labels[1] == 5).sum() < 0.7 * (labels[0] == 5).sum()  # a crescent in cam1
+    c, r = spheres[5]
+    uv = cams[1].project(c[None], distort=False)[0]
+    rho = r * 1500.0 / cams[1].world_to_camera(c[None])[0, 2]
+    vv, uu = np.mgrid[0:240, 0:240]
+    behind = (np.hypot(uu - uv[0], vv - uv[1]) <= rho) & (labels[1] == 3)
+    p = mesh_params({"surface": "hull"})
+    got = {}
+    for name, hidden in (("crescent", None), ("whole", {5: [None, behind]})):
+        verts, faces, ids = hull_mesh_frame(cams, labels, p, hidden=hidden)
+        v, f = _bubble_mesh(verts, faces, ids, 5)
+        d_xz = np.ptp(v @ np.c_[[0, 0, 1], [1, 0, 0]], axis=0)  # bisector z, across x
+        got[name] = (abs(signed_volume(v, f)) / (4 / 3 * np.pi * r**3), d_xz[0] / d_xz[1])
+    vol, ratio = got["whole"]
+    assert abs(vol - 1) < 0.08 and abs(ratio - 1) < 0.15, got
+    assert got["crescent"][0] < 0.8, got

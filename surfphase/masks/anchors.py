@@ -196,6 +196,23 @@ def apparent_size(cam: Camera, X: np.ndarray, area_px: float) -> float:
     return float(np.sqrt(area_px / np.pi) * depth / f)
 
 
+def pair_agreement(
+    cameras: Sequence[Camera], a: tuple[float, float, float], b: tuple[float, float, float]
+) -> tuple[np.ndarray, float, float]:
+    """The triangulated centre X (3,) m of one bubble's two silhouette entries ``(u, v,
+    area)`` (pixels, pixels²) in the two views, the larger reprojection error of the two
+    centres (pixels) and the ratio of the two apparent sizes at X (≥ 1)."""
+    ca, cb = cameras[0], cameras[1]
+    ua, ub = np.array([a[:2]], np.float64), np.array([b[:2]], np.float64)
+    X = triangulate([ca, cb], [ua, ub])[0]
+    rep = max(
+        float(np.linalg.norm(ca.project(X[None])[0] - ua[0])),
+        float(np.linalg.norm(cb.project(X[None])[0] - ub[0])),
+    )
+    sa, sb = apparent_size(ca, X, a[2]), apparent_size(cb, X, b[2])
+    return X, rep, max(sa, sb) / max(min(sa, sb), 1e-12)
+
+
 def anchor_table(
     cameras: Sequence[Camera],
     centroids: Sequence[Sequence[Mapping[int, tuple[float, float, float]]]],
@@ -231,16 +248,9 @@ def anchor_table(
         for bid in sorted(set(a) & set(b)):
             if bid < 1:
                 continue
-            ua, ub = np.array([a[bid][:2]]), np.array([b[bid][:2]])
-            X = triangulate([ca, cb], [ua, ub])[0]
-            rep = max(
-                float(np.linalg.norm(ca.project(X[None])[0] - ua[0])),
-                float(np.linalg.norm(cb.project(X[None])[0] - ub[0])),
-            )
-            sa, sb = apparent_size(ca, X, a[bid][2]), apparent_size(cb, X, b[bid][2])
-            ratio = max(sa, sb) / max(min(sa, sb), 1e-12)
+            X, rep, ratio = pair_agreement((ca, cb), a[bid], b[bid])
             ok = rep <= float(p["max_reproj_px"]) and ratio <= float(p["max_size_ratio"])
-            r_m = 0.5 * (sa + sb)
+            r_m = 0.5 * (apparent_size(ca, X, a[bid][2]) + apparent_size(cb, X, b[bid][2]))
             rows.append(
                 (int(f), int(bid), *map(float, X), rep, ratio, r_m, bid in fitted, bool(ok))
             )
@@ -749,6 +759,121 @@ def sphere_centres(
         if rms > float(max_rms) * r or float(covers[k]) < float(min_visible) * area:
             return None
         out[k] = (float(c[0]), float(c[1]), area)
+    return out
+
+
+def occluded_centres(
+    cameras: Sequence[Camera],
+    fused: int,
+    outline: np.ndarray,
+    known: Mapping[int, tuple[float, float, float]],
+    max_rms: float = ANCHOR_DEFAULTS["max_sphere_rms"],
+    grid: int = 40,
+) -> dict[int, tuple[float, float, float, float]] | None:
+    """The circles of two or three bubbles whose silhouettes one view fuses into one.
+
+    One view (``1 − fused``) sees the bubbles apart, with whole silhouettes: each has
+    its centre and area there (``known``). The other view (``fused``) sees them
+    overlap, one in front of another, as one silhouette whose visible ``outline`` is
+    made of arcs of their circles. As in :func:`sphere_centres` with a known view,
+    each sphere lies on its centre's ray with the size its area gives at its depth
+    (:func:`apparent_size`), and projects in the fused view to the circle of centre
+    X's projection and radius f·R / depth; the unknowns are the depths along the rays.
+    Each outline point's residual is its signed distance to the union of the circles
+    (the least of its radial distances to each); the depths start from the best of a
+    ``grid`` per ray (the stretch of ray whose circle centre falls near the outline)
+    and are refined by ``scipy.optimize.least_squares``.
+
+    Args:
+        cameras: the two views' undistorted cameras.
+        fused: index (0 or 1) of the view that fuses the silhouettes.
+        outline: (N, 2) visible outline points of the fused silhouette in that view
+            (pixels, column, row; :func:`visible_outline`).
+        known: ``{bubble: (u, v, area)}`` of 2 or 3 bubbles in the other view (pixels,
+            pixels²).
+        max_rms: largest rms residual over the circles' mean radius.
+        grid: depths tried per ray for the start.
+
+    Returns:
+        ``{bubble: (u, v, area, depth)}`` in the fused view: each circle's centre
+        (pixels), area (pixels², its whole silhouette's) and the sphere centre's depth
+        there (m; the least is in front); None where the outline is short, the fit
+        misses ``max_rms``, or some circle owns less than a tenth of the outline (its
+        bubble is hidden, or not there: its depth is not measured).
+    """
+    from scipy.optimize import least_squares
+
+    ids = sorted(known)
+    pts = np.asarray(outline, np.float64).reshape(-1, 2)
+    if not 2 <= len(ids) <= 3 or len(pts) < _MIN_OUTLINE_POINTS * len(ids):
+        return None
+    cu, cv = cameras[1 - fused], cameras[fused]
+    f_v = float(np.sqrt(cv.K[0, 0] * cv.K[1, 1]))
+    rays = []
+    for b in ids:
+        d = cu.R.T @ np.linalg.solve(cu.K, np.array([known[b][0], known[b][1], 1.0]))
+        rays.append(d / np.linalg.norm(d))
+
+    def circles(b: int, s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Centres (S, 2) px, radii (S,) px and depths (S,) m in the fused view of bubble
+        ``ids[b]``'s spheres at distances ``s`` (S,) m along its ray."""
+        X = cu.center[None] + s[:, None] * rays[b][None]
+        R = np.array([apparent_size(cu, x, known[ids[b]][2]) for x in X])
+        z = cv.world_to_camera(X)[:, 2]
+        return cv.project(X, distort=False), f_v * R / np.maximum(z, 1e-12), z
+
+    # Distances along each ray whose circle centre lies near the outline: the start.
+    lo, hi = pts.min(0), pts.max(0)
+    pad = 0.5 * (hi - lo) + 1.0
+    mid = triangulate([cu, cv], [np.array([known[ids[0]][:2]]), np.array([pts.mean(0)])])[0]
+    s_ref = float(np.linalg.norm(mid - cu.center))
+    if not np.isfinite(s_ref) or s_ref <= 0:
+        return None
+    starts = []
+    for b in range(len(ids)):
+        s = np.geomspace(0.3 * s_ref, 3.0 * s_ref, 800)
+        c, _r, z = circles(b, s)
+        near = (z > 0) & np.all((c >= lo - pad) & (c <= hi + pad), axis=1)
+        if not near.any():
+            return None
+        s = s[near]
+        starts.append(s[np.unique(np.linspace(0, len(s) - 1, grid).round().astype(int))])
+    if len(ids) == 3:
+        starts = [s[:: max(1, len(s) // 16)] for s in starts]
+
+    def signed(b: int, s: np.ndarray) -> np.ndarray:
+        c, r, _z = circles(b, s)
+        return np.linalg.norm(pts[None] - c[:, None], axis=2) - r[:, None]  # (S, N)
+
+    d = [signed(b, s) for b, s in enumerate(starts)]
+    if len(ids) == 2:
+        cost = (np.minimum(d[0][:, None], d[1][None]) ** 2).mean(-1)
+    else:
+        cost = (np.minimum(np.minimum(d[0][:, None, None], d[1][None, :, None]),
+                           d[2][None, None]) ** 2).mean(-1)  # fmt: skip
+    best = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    x0 = np.array([starts[b][i] for b, i in enumerate(best)])
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        return np.min([signed(b, x[b : b + 1])[0] for b in range(len(ids))], axis=0)
+
+    fit = least_squares(resid, x0, x_scale=np.full(len(ids), 0.01 * s_ref))
+    if not fit.success or not np.all(np.isfinite(fit.x)):
+        return None
+    out = {}
+    radii = []
+    for b, x in enumerate(fit.x):
+        c, r, z = circles(b, np.array([x]))
+        if not (z[0] > 0 and r[0] > 0):
+            return None
+        out[ids[b]] = (float(c[0, 0]), float(c[0, 1]), float(np.pi * r[0] ** 2), float(z[0]))
+        radii.append(float(r[0]))
+    res = resid(fit.x)
+    if float(np.sqrt(np.mean(res**2))) > float(max_rms) * float(np.mean(radii)):
+        return None
+    owner = np.argmin([np.abs(signed(b, fit.x[b : b + 1])[0]) for b in range(len(ids))], axis=0)
+    if np.bincount(owner, minlength=len(ids)).min() < 0.1 * len(pts):
+        return None
     return out
 
 

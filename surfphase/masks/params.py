@@ -168,6 +168,12 @@ ANCHOR_DEFAULTS: dict = {
     # True fits the whole sphere to both views' outlines (its centre drifts with a
     # spheroid's shape as less of it is inside), False leaves the bubble without a centre.
     "sphere_both_cut": True,
+    # Two or three bubbles that one view sees apart, whole, and the other fuses into one
+    # silhouette (one in front of another): their spheres on the first view's rays fitted
+    # to the fused outline's arcs give their centres there (occluded_centres; rms at most
+    # max_sphere_rms of the circles' mean radius), and the fused silhouette's pixels go
+    # to the circle in front that holds them; False: such bubbles get no centre there.
+    "occlusion": True,
     # A bubble born of a merge (both views' events), for this many seconds from the
     # merge frame (the coalescence time, as associate: merge_lobe_s), has as its
     # silhouette's centre the centroid of the solid of revolution about its long axis

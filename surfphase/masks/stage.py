@@ -229,6 +229,7 @@ def frame_anchors(
     frames: np.ndarray,
     params: Mapping,
     young: Mapping[int, set[int]] | None = None,
+    related: set[frozenset[int]] = frozenset(),
 ) -> pd.DataFrame:
     """The triangulated centres (:func:`surfphase.masks.anchors.anchor_table`) of the
     first two views' bubbles, from their sub-pixel silhouette centroids; a silhouette
@@ -237,7 +238,10 @@ def frame_anchors(
     ``anchors: min_visible`` of it is in the frame, else from the shape its track shows
     whole in another frame (:func:`surfphase.masks.anchors.tracked_cut_centres`,
     ``min_visible_tracked``), else from the sphere both views' outlines agree on
-    (:func:`sphere_cut_centres`), and none in that frame otherwise. The ids of
+    (:func:`sphere_cut_centres`), and none in that frame otherwise. Bubbles one view
+    sees apart and the other fuses into one silhouette get their circles there from its
+    outline (:func:`occluded_centres`; not two that a merge joins, ``related``:
+    :func:`merge_relatives`), and that silhouette is split between them. The ids of
     ``young`` (frame position → young merged bubbles, :func:`young_merged`) take the
     centroid of their silhouette's solid of revolution
     (:func:`surfphase.masks.anchors.lobe_centroids`)."""
@@ -275,6 +279,11 @@ def frame_anchors(
         cents.append(per)
         cuts.append(per_cut)
     cams = [cameras[c].undistorted() for c in names]
+    split: list[tuple[str, int]] = []
+    if ap["occlusion"] and len(names) == 2:
+        split = occluded_centres(
+            stacks, labels, backgrounds, cams, cents, cuts, params, related
+        )
     if float(ap["min_visible_sphere"]) <= 1.0 and len(names) == 2:
         sphere_cut_centres(stacks, labels, backgrounds, cams, cents, cuts, params)
     table = anchors.anchor_table(cams, cents, frames, ap, cuts)
@@ -285,7 +294,145 @@ def frame_anchors(
         frames,
         float(params["associate"]["nucleation_height"]),
     )
+    table.attrs["split"] = split
     return table
+
+
+def _epipolar_hits(cam_u, cam_v, centre: tuple, lab: np.ndarray, reach: float = 4.0) -> set[int]:
+    """Region ids (≥ 1) of the view's (H, W) labels ``lab`` that the ray of ``centre``
+    ((u, v, …) pixels of ``cam_u``) crosses, seen by ``cam_v``: its points from 1/reach to
+    reach times the distance of the lab origin, projected."""
+    d = cam_u.R.T @ np.linalg.solve(cam_u.K, np.array([centre[0], centre[1], 1.0]))
+    d /= np.linalg.norm(d)
+    s0 = float(np.linalg.norm(cam_u.center))
+    X = cam_u.center[None] + np.geomspace(s0 / reach, s0 * reach, 4000)[:, None] * d[None]
+    X = X[cam_v.world_to_camera(X)[:, 2] > 0]
+    uv = np.rint(cam_v.project(X, distort=False)).astype(int)
+    h, w = lab.shape
+    ok = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    hit = lab[uv[ok, 1], uv[ok, 0]]
+    return {int(b) for b in np.unique(hit) if b >= 1}
+
+
+def occluded_centres(
+    stacks: Mapping[str, np.ndarray],
+    labels: Mapping[str, np.ndarray],
+    backgrounds: Mapping[str, tuple],
+    cams: Sequence,
+    cents: list[list[dict]],
+    cuts: list[list[set[int]]],
+    params: Mapping,
+    related: set[frozenset[int]] = frozenset(),
+) -> list[tuple[str, int]]:
+    """Fill in place, in ``cents`` and ``cuts`` (as :func:`frame_anchors` builds them),
+    the centres of bubbles that one view sees apart and whole and the other fuses into
+    one silhouette, one in front of another (``anchors: occlusion``).
+
+    In a frame, a bubble with a whole silhouette in one view whose entry in the other
+    view is missing or disagrees with it (:func:`surfphase.masks.anchors.pair_agreement`
+    beyond ``max_reproj_px`` or ``max_size_ratio``) is hidden there in the silhouette
+    its ray crosses (its own piece aside). That silhouette, with the pieces of the
+    bubbles hidden in it, is fitted by their circles
+    (:func:`surfphase.masks.anchors.occluded_centres`); the circles become their
+    entries there (marked fitted, as a border-cut bubble's), and the silhouette's
+    pixels are relabelled in ``labels``, in place: each to the circle nearest the
+    camera that holds it, else to the circle whose edge is nearest (background when
+    further than :data:`SPLIT_REACH_PX` from all). Bubbles that a merge joins
+    (``related``, pairs of ids: :func:`merge_relatives`) are not fitted together: one
+    view may see them merged, or as touching lobes, a frame before the other. Returns the
+    (camera, frame position) of the labels relabelled.
+    """
+    names = list(stacks)[:2]
+    cp, ap = params["classical"], params["anchors"]
+    ring, rms_max = int(ap["ring_px"]), float(ap["max_sphere_rms"])
+    split: list[tuple[str, int]] = []
+    for k in range(stacks[names[0]].shape[0]):
+        for v in (0, 1):
+            u = 1 - v
+            whole = {b: e for b, e in cents[u][k].items() if b >= 1 and b not in cuts[u][k]}
+            lab = np.asarray(labels[names[v]][k])
+            hosts: dict[int, set[int]] = {}
+            for b, e in whole.items():
+                if b in cents[v][k] and b not in cuts[v][k]:
+                    _X, rep, ratio = anchors.pair_agreement((cams[u], cams[v]), e, cents[v][k][b])
+                    if rep <= float(ap["max_reproj_px"]) and ratio <= float(ap["max_size_ratio"]):
+                        continue
+                hits = _epipolar_hits(cams[u], cams[v], e, lab)
+                others = hits - {b}
+                host = next(iter(others)) if len(others) == 1 else b if hits == {b} else None
+                if host is not None:
+                    hosts.setdefault(host, set()).add(b)
+            for host, hidden in hosts.items():
+                group = sorted(hidden | ({host} if host in whole else set()))
+                if not 2 <= len(group) <= 3 or any(g not in whole for g in group):
+                    continue
+                if any(frozenset((a, b)) in related for a in group for b in group if a < b):
+                    continue
+                joined = np.where(np.isin(lab, group), host, lab)
+                con = classical.relative_contrast(stacks[names[v]][k], cp, backgrounds[names[v]])
+                vis = anchors.visible_outline(
+                    con, joined, anchors.region_owners(joined, ring), host, ring
+                )
+                if vis is None:
+                    continue
+                fit = anchors.occluded_centres(
+                    cams, v, vis[0], {g: whole[g] for g in group}, rms_max
+                )
+                if fit is None:
+                    continue
+                for g, (cu_, cv_, area, _z) in fit.items():
+                    cents[v][k][g] = (cu_, cv_, area)
+                    cuts[v][k].add(g)
+                _split_fused(labels[names[v]], k, joined == host, fit)
+                split.append((names[v], k))
+    return split
+
+
+def refreshed_instances(
+    instances: pd.DataFrame, lab_stack: np.ndarray, camera: str, k: int
+) -> pd.DataFrame:
+    """``instances`` with the rows of ``camera`` at frame position ``k`` remade from its
+    (T, H, W) labels (area, centroid and inclusive box of each id ≥ 0; each keeps the
+    score of the row it replaces, the largest of the frame's where it had none)."""
+    lab = np.asarray(lab_stack[k])
+    mine = (instances["camera"] == camera) & (instances["frame"] == k)
+    old = instances[mine]
+    score = old.groupby("bubble")["score"].max().to_dict()
+    rows = []
+    for b in np.unique(lab[lab >= 0]):
+        ys, xs = np.nonzero(lab == b)
+        sc = score.get(int(b), max(score.values()) if score else float("nan"))
+        rows.append((k, camera, int(b), ys.size, xs.mean(), ys.mean(), xs.min(), ys.min(),
+                     xs.max(), ys.max(), float(sc)))  # fmt: skip
+    new = pd.DataFrame(rows, columns=["frame", "camera", "bubble", "area", "cx", "cy", "x0",
+                                      "y0", "x1", "y1", "score"])  # fmt: skip
+    out = pd.concat([instances[~mine], new.astype(instances.dtypes.to_dict())],
+                    ignore_index=True)  # fmt: skip
+    return out.sort_values(["frame", "camera", "bubble"], kind="stable").reset_index(drop=True)
+
+
+#: Pixels of a fused silhouette further than this outside every fitted circle are
+#: none of its bubbles' (a stray piece of a mask): background (:func:`_split_fused`).
+SPLIT_REACH_PX = 1.5
+
+
+def _split_fused(lab_stack: np.ndarray, k: int, region: np.ndarray, fit: Mapping) -> None:
+    """Relabel, in place, the pixels of ``region`` ((H, W) bool) in frame ``k`` of a
+    (T, H, W) label stack by the circles of ``fit`` (``{bubble: (u, v, area, depth)}``):
+    each pixel to the nearest-to-camera circle holding it, else to the circle whose
+    edge is nearest, within :data:`SPLIT_REACH_PX`; background beyond."""
+    rows, cols = np.nonzero(region)
+    ids = list(fit)
+    c = np.array([fit[b][:2] for b in ids])
+    r = np.sqrt(np.array([fit[b][2] for b in ids]) / np.pi)
+    z = np.array([fit[b][3] for b in ids])
+    d = np.hypot(cols[:, None] - c[None, :, 0], rows[:, None] - c[None, :, 1]) - r[None]
+    inside = d <= 0
+    front = np.where(inside, z[None], np.inf).argmin(1)
+    pick = np.where(inside.any(1), front, d.argmin(1))
+    frame = np.asarray(lab_stack[k]).copy()
+    frame[rows, cols] = np.where(d.min(1) <= SPLIT_REACH_PX, np.asarray(ids)[pick], -1)
+    lab_stack[k] = frame
 
 
 def sphere_cut_centres(
@@ -459,6 +606,20 @@ def young_merged(
     return out
 
 
+def merge_relatives(events: pd.DataFrame) -> set[frozenset[int]]:
+    """Pairs of bubble ids that one merge of ``events`` (``events.csv``'s rows) joins:
+    its parents with each other and with its child, in any view."""
+    out: set[frozenset[int]] = set()
+    if len(events) == 0:
+        return out
+    for par, ch in events.loc[events["event"] == "merge", ["parents", "children"]].itertuples(
+        index=False
+    ):
+        ids = sorted({int(x) for x in f"{par}+{ch}".split("+") if x.strip()})
+        out |= {frozenset((a, b)) for i, a in enumerate(ids) for b in ids[i + 1 :]}
+    return out
+
+
 def merged_in_every_view(events: pd.DataFrame, views: Sequence[str]) -> set[int]:
     """Bubble ids born of a merge that every one of ``views`` records in ``events``
     (``events.csv``'s rows: ``camera``, ``event``, ``children``)."""
@@ -568,9 +729,13 @@ def _anchor_and_drop(
     young = young_merged(
         events, list(stacks)[:2], len(frames), fps, float(p["anchors"]["lobe_centroid_s"])
     )
-    anchor_tab = frame_anchors(stacks, labels, bgs, cameras, frames, p, young)
+    anchor_tab = frame_anchors(
+        stacks, labels, bgs, cameras, frames, p, young, merge_relatives(events)
+    )
     pos = {int(f): k for k, f in enumerate(frames)}
     anchor_tab["position"] = [pos[int(f)] for f in anchor_tab["frame"]]
+    for cam, k in anchor_tab.attrs.get("split", []):
+        instances = refreshed_instances(instances, labels[cam], cam, k)
     merged = merged_in_every_view(events, list(stacks)[:2])
     dropped = drop_inconsistent(labels, instances, anchor_tab, merged)
     static = drop_static(labels, instances, anchor_tab, fps, float(p["anchors"]["min_speed_mps"]))

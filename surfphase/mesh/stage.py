@@ -272,6 +272,48 @@ def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], l
     return [v[0] for v in views], [v[1] for v in views]
 
 
+#: Least share of a bubble's sphere image that other bubbles' silhouettes cover for it
+#: to count as hidden behind them in that view (:func:`hidden_parts`).
+HIDDEN_MIN_SHARE = 0.1
+
+
+def hidden_parts(
+    s: _Session, t: int, views: list[Camera], labels: list[np.ndarray]
+) -> dict[int, list[np.ndarray | None]] | None:
+    """Per bubble hidden behind others in some view, per view, the (H, W) bool pixels of
+    ``labels`` (:func:`frame_views`' grids, cameras ``views``) it covers there behind
+    them: where the image of its anchors' sphere (``complete_cut_spheres``; centre's
+    projection, radius f·r / depth) lies on other bubbles' silhouettes, when that is at
+    least :data:`HIDDEN_MIN_SHARE` of the image and its own silhouette fits inside it
+    (at most 10 % of its pixels more than a pixel outside: the labels were split at the
+    recording's resolution, and a stray piece may lie apart); None in the other views. The mask stage splits
+    a fused silhouette between the bubbles in it (``masks: anchors: occlusion``): the
+    one behind keeps only what shows of it."""
+    if not s.spheres:
+        return None
+    spheres = s.spheres.get(int(s.surfels["frame"][t]), {})
+    out: dict[int, list[np.ndarray | None]] = {}
+    for k, (cam, lab) in enumerate(zip(views, labels, strict=True)):
+        cam = cam.undistorted()
+        f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+        vv, uu = np.mgrid[0 : lab.shape[0], 0 : lab.shape[1]]
+        for b, (X, r) in spheres.items():
+            z = float(cam.world_to_camera(np.asarray(X)[None])[0, 2])
+            if b < 1 or z <= 0 or not (lab == b).any():
+                continue
+            u, v = cam.project(np.asarray(X)[None], distort=False)[0]
+            rho = f * r / z
+            disc = np.hypot(uu - u, vv - v) <= rho
+            behind = disc & (lab >= 1) & (lab != b)
+            own = lab == b
+            if behind.sum() < HIDDEN_MIN_SHARE * np.pi * rho * rho:
+                continue
+            if np.mean(np.hypot(uu - u, vv - v)[own] > rho + 1.0) > 0.1:
+                continue
+            out.setdefault(b, [None] * len(views))[k] = behind
+    return out or None
+
+
 def sphere_shapes(
     cam: Camera, lab: np.ndarray, spheres: dict[int, tuple], done: set[int]
 ) -> dict[int, tuple]:
@@ -371,12 +413,15 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
         vel, vbub = np.zeros((0, 3)), np.zeros(0, np.int64)
         if s.p["surface"] == "hull":
             sb = surf["bubble"][t][a] if "bubble" in surf else np.full(int(a.sum()), -9)
+            views, labs = frame_views(s, t, shape_cache)
             verts, faces, vbub = hull_mesh_frame(
-                *frame_views(s, t, shape_cache),
+                views,
+                labs,
                 s.p,
                 surfel_spheres(surf["means"][t][a], sb),
                 None if s.centres is None else s.centres.get(int(surf["frame"][t])),
                 None if s.areas is None else s.areas.get(int(surf["frame"][t])),
+                hidden_parts(s, t, views, labs),
             )
             vel = bubble_vertex_velocities(
                 verts, vbub, surf["means"][t][a], sb, surf["velocity"][t][a]

@@ -11,6 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from surfphase.cameras import Camera, orbit_cameras
+from surfphase.masks.anchors import pair_sphere
 from surfphase.mesh.cleanup import clean_mesh, drop_fragments
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
 from surfphase.mesh.hull import bubble_hull_volume, bubble_pieces, elliptic_hull_distance
@@ -96,6 +97,7 @@ def hull_mesh_frame(
     hints: dict[int, tuple[np.ndarray, float]] | None = None,
     centres: dict[int, np.ndarray] | None = None,
     areas: dict[int, list[float]] | None = None,
+    hidden: dict[int, list[np.ndarray | None]] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mesh of one frame's bubbles as their elliptic hulls (``mesh: surface: hull``).
 
@@ -115,12 +117,22 @@ def hull_mesh_frame(
     counted in these views' pixels) has its mesh scaled about its centre so that its
     images have those areas (:func:`scale_to_silhouettes`, ``hull_native_area``): the
     labels the hull is made from are the fit's, and a bubble a few of their pixels
-    across loses a part of its volume to their pixels and the hull's slices. Returns
-    (V, 3) vertices (m), (F, 3) faces and (V,) each vertex's bubble id.
+    across loses a part of its volume to their pixels and the hull's slices. A bubble
+    with a ``hidden`` entry (id → per view, the (H, W) bool pixels it covers behind
+    other bubbles there, or None) has those pixels added to its silhouette in that view,
+    and that view's area left out of the scaling. Returns (V, 3) vertices (m), (F, 3)
+    faces and (V,) each vertex's bubble id.
     """
     views = [c.undistorted() for c in inputs]
     verts, faces, ids, n = [], [], [], 0
     for b, centre, radius, masks in bubble_pieces(views, labels):
+        behind = (hidden or {}).get(b) if b >= 1 else None
+        if behind is not None:
+            masks = [m if h is None else m | h for m, h in zip(masks, behind, strict=True)]
+            uvs = [np.array([np.nonzero(m)[1].mean(), np.nonzero(m)[0].mean()]) for m in masks]
+            sp = pair_sphere(views, uvs, [float(m.sum()) for m in masks])
+            if sp is not None and sp[1] > 0:  # where the whole silhouettes put it
+                centre, radius = sp[0], sp[1]
         own = [np.where(m, b, -1) for m in masks]
         vol = None
         for c, r in [(centre, radius)] + ([hints[b]] if hints and b in hints else []):
@@ -147,9 +159,11 @@ def hull_mesh_frame(
         v, f = drop_fragments(v, f, float(p["min_piece_frac"]))
         if len(f) and areas and b >= 1 and b in areas:
             centre_b = centres[b] if centres and b in centres else v.mean(axis=0)
+            seen = [k for k in range(len(views)) if behind is None or behind[k] is None]
             v = scale_to_silhouettes(
-                v, f, views, areas[b], centre_b, tuple(p["hull_area_limits"])
-            )
+                v, f, [views[k] for k in seen], [areas[b][k] for k in seen], centre_b,
+                tuple(p["hull_area_limits"]),
+            )  # fmt: skip
             if p["floor_y"] is not None:
                 v[:, 1] = np.maximum(v[:, 1], float(p["floor_y"]))
         if len(f):
@@ -204,6 +218,8 @@ def scale_to_silhouettes(
         if not (proj > 0 and area > 0):
             return verts
         ratios.append(area / proj)
+    if not ratios:
+        return verts
     k = float(np.prod(ratios) ** (0.5 / len(ratios)))
     if not limits[0] <= k <= limits[1]:
         return verts

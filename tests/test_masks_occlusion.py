@@ -1,0 +1,97 @@
+"""Two bubbles one view sees apart and the other sees one in front of the other, as one
+silhouette, for the whole session (``masks: anchors: occlusion``)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+from test_masks_scene import SCENE_CENTER, rig, write_ingest
+
+from surfphase.masks.stage import run_mask_stage
+
+R_FRONT, R_BACK, RISE = 0.0011, 0.0009, 1.2e-4
+
+
+def _centres():
+    """The two spheres' frame-0 centres: 5 mm apart along cam1's line of sight through
+    the scene centre (the smaller behind), 0.9 mm apart across it."""
+    c1 = rig(128)["cam1"]
+    d = (SCENE_CENTER - c1.center) / np.linalg.norm(SCENE_CENTER - c1.center)
+    side = np.cross(d, [0.0, 1.0, 0.0])
+    side /= np.linalg.norm(side)
+    return SCENE_CENTER - 0.0025 * d, SCENE_CENTER + 0.0025 * d + 0.0009 * side
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    front, back = _centres()
+    tracks = [
+        lambda t: (front + [0.0, RISE * t, 0.0], R_FRONT),
+        lambda t: (back + [0.0, RISE * t, 0.0], R_BACK),
+    ]
+    root = tmp_path_factory.mktemp("occlusion")
+    truth = write_ingest(root / "ingest", tracks, 8)
+    return root, truth
+
+
+def test_the_scene_fuses_the_bubbles_in_one_view_only(scene):
+    _root, truth = scene
+    for t in range(8):
+        for c in ("cam0", "cam1"):
+            assert {0, 1} <= set(np.unique(truth[c][t]))
+    # cam1 sees the back sphere as a sliver beside the front one, cam0 both whole.
+    assert (truth["cam1"][0] == 1).sum() < 0.5 * (truth["cam0"][0] == 1).sum()
+
+
+def test_fused_bubbles_get_their_centres_from_the_fused_outline(scene, tmp_path):
+    root, truth = scene
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # every bubble gets a centre: no warning
+        run_mask_stage(root / "ingest", tmp_path / "on", {"overlay_frames": 0})
+    tab = pd.read_csv(tmp_path / "on" / "anchors.csv")
+    lab0 = np.load(tmp_path / "on" / "cam0_labels.npy")
+    lab1 = np.load(tmp_path / "on" / "cam1_labels.npy")
+    front, back = _centres()
+    for t in range(8):
+        rows = tab[tab.frame == t]
+        assert len(rows) == 2
+        for k, (x, r) in enumerate(((front, R_FRONT), (back, R_BACK))):
+            # The bubble id covering most of sphere k in cam0, its centre against the truth.
+            v, n = np.unique(lab0[t][truth["cam0"][t] == k], return_counts=True)
+            b = int(v[np.argmax(n)])
+            got = rows[rows.bubble == b][["x", "y", "z"]].to_numpy(float)[0]
+            want = x + [0.0, RISE * t, 0.0]
+            assert np.linalg.norm(got - want) < 0.05 * r, (t, k, got - want)
+            # cam1's fused silhouette is split: each id covers what shows of its sphere.
+            shown = truth["cam1"][t] == k
+            mine = lab1[t] == b
+            assert (shown & mine).sum() / (shown | mine).sum() > 0.75
+    inst = pd.read_csv(tmp_path / "on" / "instances.csv")
+    one = inst[(inst.frame == 3) & (inst.camera == "cam1") & (inst.bubble >= 1)]
+    for b, area in zip(one.bubble, one.area, strict=True):
+        assert area == (lab1[3] == b).sum()  # the instances describe the split labels
+
+
+def test_without_the_occlusion_fit_the_bubble_behind_is_lost(scene, tmp_path):
+    root, _truth = scene
+    run_mask_stage(
+        root / "ingest", tmp_path / "off", {"overlay_frames": 0, "anchors": {"occlusion": False}}
+    )
+    tab = pd.read_csv(tmp_path / "off" / "anchors.csv")
+    assert len(tab) == 8 and tab.bubble.nunique() == 1  # the front bubble only
+
+
+def test_merge_relatives_pair_a_merges_parents_and_child():
+    from surfphase.masks.stage import merge_relatives
+
+    events = pd.DataFrame(
+        [(17, "cam0", "merge", "3+2", "5"), (19, "cam1", "merge", "2", "5"),
+         (22, "cam0", "split", "1", "6")],
+        columns=["frame", "camera", "event", "parents", "children"],
+    )  # fmt: skip
+    want = {frozenset(p) for p in ((2, 3), (2, 5), (3, 5))}
+    assert merge_relatives(events) == want
+    assert merge_relatives(events.iloc[:0]) == set()
