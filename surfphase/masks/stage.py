@@ -333,8 +333,8 @@ def occluded_centres(
     beyond ``max_reproj_px`` or ``max_size_ratio``) is hidden there in the silhouette
     its ray crosses (its own piece aside). That silhouette, with the pieces of the
     bubbles hidden in it, is fitted by their circles
-    (:func:`surfphase.masks.anchors.occluded_centres`); the circles become their
-    entries there (marked fitted, as a border-cut bubble's), and the silhouette's
+    (:func:`surfphase.masks.anchors.occluded_centres`), kept where each circle lies on
+    silhouettes (:func:`_discs_on_silhouettes`); the circles become their entries there (marked fitted, as a border-cut bubble's), and the silhouette's
     pixels are relabelled in ``labels``, in place: each to the circle nearest the
     camera that holds it, else to the circle whose edge is nearest (background when
     further than :data:`SPLIT_REACH_PX` from all). Bubbles that a merge joins
@@ -378,7 +378,7 @@ def occluded_centres(
                 fit = anchors.occluded_centres(
                     cams, v, vis[0], {g: whole[g] for g in group}, rms_max
                 )
-                if fit is None:
+                if fit is None or not _discs_on_silhouettes(lab, fit):
                     continue
                 for g, (cu_, cv_, area, _z) in fit.items():
                     cents[v][k][g] = (cu_, cv_, area)
@@ -409,6 +409,34 @@ def refreshed_instances(
     out = pd.concat([instances[~mine], new.astype(instances.dtypes.to_dict())],
                     ignore_index=True)  # fmt: skip
     return out.sort_values(["frame", "camera", "bubble"], kind="stable").reset_index(drop=True)
+
+
+#: Least share of a fitted circle's inner disc (its radius less a pixel) that must be
+#: silhouette pixels in its view: whatever hides a bubble is a bubble too, so its
+#: whole image is dark (:func:`_discs_on_silhouettes`).
+MIN_DISC_ON_SILHOUETTE = 0.9
+
+
+def _discs_on_silhouettes(lab: np.ndarray, fit: Mapping) -> bool:
+    """Whether each circle of ``fit`` (``{bubble: (u, v, area, depth)}``) lies on the
+    silhouettes of the (H, W) labels ``lab`` (ids ≥ 0): at least
+    :data:`MIN_DISC_ON_SILHOUETTE` of the pixels of its disc shrunk by a pixel that lie
+    in the image. A circle whose arc fits a stretch of the outline but that lies over
+    the background is not a bubble there."""
+    h, w = lab.shape
+    for u, v, area, _z in fit.values():
+        r = float(np.sqrt(area / np.pi)) - 1.0
+        if r <= 0:
+            continue
+        y0, y1 = max(int(np.floor(v - r)), 0), min(int(np.ceil(v + r)) + 1, h)
+        x0, x1 = max(int(np.floor(u - r)), 0), min(int(np.ceil(u + r)) + 1, w)
+        if y0 >= y1 or x0 >= x1:
+            return False
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        disc = np.hypot(xx - u, yy - v) <= r
+        if not disc.any() or np.mean(lab[y0:y1, x0:x1][disc] >= 0) < MIN_DISC_ON_SILHOUETTE:
+            return False
+    return True
 
 
 #: Pixels of a fused silhouette further than this outside every fitted circle are
