@@ -334,7 +334,9 @@ def occluded_centres(
     its ray crosses (its own piece aside). That silhouette, with the pieces of the
     bubbles hidden in it, is fitted by their circles
     (:func:`surfphase.masks.anchors.occluded_centres`), kept where each circle lies on
-    silhouettes (:func:`_discs_on_silhouettes`); the circles become their entries there (marked fitted, as a border-cut bubble's), and the silhouette's
+    silhouettes (:func:`_discs_on_silhouettes`); the circles of the bubbles of which at
+    least ``min_visible_sphere`` shows (:func:`_visible_shares`: a bubble nearly hidden
+    has its depth from a short arc) become their entries there (marked fitted, as a border-cut bubble's), and the silhouette's
     pixels are relabelled in ``labels``, in place: each to the circle nearest the
     camera that holds it, else to the circle whose edge is nearest (background when
     further than :data:`SPLIT_REACH_PX` from all). Bubbles that a merge joins
@@ -380,9 +382,11 @@ def occluded_centres(
                 )
                 if fit is None or not _discs_on_silhouettes(lab, fit):
                     continue
+                shown = _visible_shares(fit)
                 for g, (cu_, cv_, area, _z) in fit.items():
-                    cents[v][k][g] = (cu_, cv_, area)
-                    cuts[v][k].add(g)
+                    if shown[g] >= float(ap["min_visible_sphere"]):
+                        cents[v][k][g] = (cu_, cv_, area)
+                        cuts[v][k].add(g)
                 _split_fused(labels[names[v]], k, joined == host, fit)
                 split.append((names[v], k))
     return split
@@ -415,6 +419,26 @@ def refreshed_instances(
 #: silhouette pixels in its view: whatever hides a bubble is a bubble too, so its
 #: whole image is dark (:func:`_discs_on_silhouettes`).
 MIN_DISC_ON_SILHOUETTE = 0.9
+
+
+def _visible_shares(fit: Mapping) -> dict[int, float]:
+    """Per circle of ``fit`` (``{bubble: (u, v, area, depth)}``), the share of its disc
+    that no circle nearer the camera covers (on a 0.25 px grid)."""
+    ids = list(fit)
+    c = np.array([fit[b][:2] for b in ids], np.float64)
+    r = np.sqrt(np.array([fit[b][2] for b in ids], np.float64) / np.pi)
+    z = np.array([fit[b][3] for b in ids], np.float64)
+    out = {}
+    for i, b in enumerate(ids):
+        g = np.arange(-r[i], r[i] + 1e-9, 0.25)
+        xx, yy = np.meshgrid(c[i, 0] + g, c[i, 1] + g)
+        disc = np.hypot(xx - c[i, 0], yy - c[i, 1]) <= r[i]
+        hidden = np.zeros_like(disc)
+        for j in range(len(ids)):
+            if j != i and z[j] < z[i]:
+                hidden |= np.hypot(xx - c[j, 0], yy - c[j, 1]) <= r[j]
+        out[b] = float((disc & ~hidden).sum() / max(disc.sum(), 1))
+    return out
 
 
 def _discs_on_silhouettes(lab: np.ndarray, fit: Mapping) -> bool:
