@@ -50,6 +50,17 @@ def test_fit_frames_hold_a_time_across_frame_rates():
     assert fit_frames(None, p) == 4
 
 
+def _associated(tmp_path, track, n: int, height: float):
+    """One sphere's ``track`` (frame → (centre, r)) drawn over ``n`` frames, segmented and
+    associated with ``nucleation_height`` = ``height`` at 1,000 fps: per view, the id
+    covering the sphere in each frame (:func:`_ids`), and the events."""
+    truth = write_ingest(tmp_path, [track], n)
+    labels, scores = _segment(tmp_path, truth)
+    params = {**ASSOCIATE_DEFAULTS, "nucleation_height": height}
+    out, _inst, events = associate(labels, scores, rig(128), params, fps=1000.0)
+    return {c: _ids(truth[c], out[c], 0) for c in truth}, events
+
+
 def test_a_slow_bubble_is_free_from_when_it_leaves_the_plate(tmp_path):
     r, rest, rise = 0.0008, 4, 4e-5  # resting until frame 4, then 40 µm a frame
     height = 3e-4  # about two pixels of this rig: the height rule alone waits 7 frames
@@ -58,11 +69,7 @@ def test_a_slow_bubble_is_free_from_when_it_leaves_the_plate(tmp_path):
         return np.array([0.0005, r + rise * max(0, t - rest), 0.0]), r
 
     n = 20
-    truth = write_ingest(tmp_path, [slow], n)
-    labels, scores = _segment(tmp_path, truth)
-    params = {**ASSOCIATE_DEFAULTS, "nucleation_height": height}
-    out, _inst, events = associate(labels, scores, rig(128), params, fps=1000.0)
-    ids = {c: _ids(truth[c], out[c], 0) for c in truth}
+    ids, events = _associated(tmp_path, slow, n, height)
     assert ids["cam0"] == ids["cam1"]
     free = [t for t, b in enumerate(ids["cam0"]) if b is not None and b >= 1]
     first = free[0]
@@ -82,12 +89,9 @@ def test_a_bubble_that_hops_off_the_plate_and_lands_back_stays_attached(tmp_path
         return np.array([0.0005, r + (4e-4 if t in (6, 7) else 0.0), 0.0]), r
 
     n = 14
-    truth = write_ingest(tmp_path, [hopping], n)
-    labels, scores = _segment(tmp_path, truth)
-    params = {**ASSOCIATE_DEFAULTS, "nucleation_height": height}
-    out, _inst, events = associate(labels, scores, rig(128), params, fps=1000.0)
-    for c in truth:
-        assert _ids(truth[c], out[c], 0) == [0] * n
+    ids, events = _associated(tmp_path, hopping, n, height)
+    for c in ids:
+        assert ids[c] == [0] * n
     assert (events["event"] == "detach").sum() == 0
 
 
@@ -99,11 +103,7 @@ def test_a_slow_bubble_whose_bottom_dips_under_the_height_rule_stays_free(tmp_pa
         return np.array([0.0005, y, 0.0]), r
 
     n = 14
-    truth = write_ingest(tmp_path, [dipping], n)
-    labels, scores = _segment(tmp_path, truth)
-    params = {**ASSOCIATE_DEFAULTS, "nucleation_height": height}
-    out, _inst, events = associate(labels, scores, rig(128), params, fps=1000.0)
-    ids = {c: _ids(truth[c], out[c], 0) for c in truth}
+    ids, events = _associated(tmp_path, dipping, n, height)
     assert ids["cam0"] == ids["cam1"]
     free = [t for t, b in enumerate(ids["cam0"]) if b is not None and b >= 1]
     assert rest <= free[0] < 11

@@ -129,7 +129,7 @@ def hull_mesh_frame(
         behind = (hidden or {}).get(b) if b >= 1 else None
         if behind is not None:
             masks = [m if h is None else m | h for m, h in zip(masks, behind, strict=True)]
-            uvs = [np.array([np.nonzero(m)[1].mean(), np.nonzero(m)[0].mean()]) for m in masks]
+            uvs = [np.argwhere(m).mean(axis=0)[::-1] for m in masks]  # (column, row)
             sp = pair_sphere(views, uvs, [float(m.sum()) for m in masks])
             if sp is not None and sp[1] > 0:  # where the whole silhouettes put it
                 centre, radius = sp[0], sp[1]
