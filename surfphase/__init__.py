@@ -14,13 +14,47 @@ thread pools (``os.environ.setdefault``: a value the user exported wins):
   beside PyTorch's. It does not allow nested parallel kernels or concurrent calls from
   several Python threads; surfphase makes neither.
 
-Both only take effect when ``surfphase`` is imported before ``torch`` and ``numba``
-(``python -m surfphase`` and the workflow's rules always do).
+On an x86-64 CPU with AVX2 it also pins the instruction set of PyTorch's CPU arithmetic,
+so that a fit gives the same bits on any such machine (a workstation, the nodes of a
+mixed cluster), not only on the one that ran it:
+
+* ``ATEN_CPU_CAPABILITY=avx2``: PyTorch's own kernels (element-wise maths, reductions)
+  take their AVX2 build, not the AVX-512 one a newer CPU would pick. The two round
+  differently: a 4-frame stage-1 fit run both ways on one machine differs in every
+  surfel parameter, and its held-out PSNR by 0.06 dB (BENCHMARKS.md, determinism).
+* ``MKL_CBWR=AVX2``: Intel MKL's conditional numerical reproducibility (its matrix
+  products take the AVX2 code path on every CPU that has it); likewise a different fit
+  from the default on an AVX-512 machine.
+* ``ONEDNN_MAX_CPU_ISA=AVX2``: oneDNN (PyTorch's CPU convolutions: the embedded prior)
+  generates no code beyond AVX2.
+
+The masks, centres, velocities and meshes do not depend on them (numpy and OpenCV give
+the same bits with their AVX-512 paths disabled). ``SURFPHASE_CPU_KERNELS=native``
+exported before the run leaves the three unset (each library then picks the machine's
+widest paths); a value of one of them exported before the run wins.
+
+All of these only take effect when ``surfphase`` is imported before ``torch`` and
+``numba`` (``python -m surfphase`` and the workflow's rules always do); the fit records
+the kernels it ran (``summary.json``: ``cpu_capability``).
 """
 
 import os
 
+
+def _has_avx2() -> bool:
+    """Whether this is an x86-64 Linux CPU with AVX2 (``/proc/cpuinfo``'s flags)."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            return any(line.startswith("flags") and "avx2" in line.split() for line in fh)
+    except OSError:
+        return False
+
+
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("NUMBA_THREADING_LAYER", "workqueue")
+if os.environ.get("SURFPHASE_CPU_KERNELS", "avx2") != "native" and _has_avx2():
+    os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")
+    os.environ.setdefault("MKL_CBWR", "AVX2")
+    os.environ.setdefault("ONEDNN_MAX_CPU_ISA", "AVX2")
 
 __version__ = "0.1.0"

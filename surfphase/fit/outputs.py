@@ -629,6 +629,10 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
         "seconds_per_iter": float(np.sum(secs) / max(np.sum(iters), 1)),
         "threads": torch.get_num_threads(),
         "device": str(device),
+        # The CPU kernels PyTorch and MKL ran (import surfphase pins them: the fit's
+        # bits depend on them).
+        "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+        "mkl_cbwr": os.environ.get("MKL_CBWR", ""),
     }
     atomic_write_json(out_dir / "summary.json", summary)
     with atomic_path(out_dir / "surfels.npz") as tmp, open(tmp, "wb") as fh:

@@ -1,0 +1,56 @@
+"""`import surfphase` pins PyTorch's CPU kernels to AVX2 on x86-64 (surfphase/__init__.py):
+the capability PyTorch reports in a fresh process, the switch that turns it off, a
+user's export winning, and the numbers being those of an explicit AVX2 run."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+import surfphase
+
+pytestmark = pytest.mark.skipif(
+    not surfphase._has_avx2(), reason="the pin applies to x86-64 CPUs with AVX2 only"
+)
+
+PROBE = """
+import json, sys
+if sys.argv[1] == "surfphase":
+    import surfphase  # noqa: F401  (before torch, as python -m surfphase does)
+import torch
+torch.manual_seed(0)
+x = torch.randn(4099, dtype=torch.float32)
+print(json.dumps({
+    "capability": torch.backends.cpu.get_cpu_capability(),
+    "exp_sum": float(torch.exp(x).sum()),
+    "norm": float(torch.linalg.vector_norm(x * 1.7 + 0.3)),
+}))
+"""
+
+
+def _probe(first: str, **env: str) -> dict:
+    drop = ("ATEN_", "MKL_CBWR", "ONEDNN_", "SURFPHASE_CPU")
+    base = {k: v for k, v in os.environ.items() if not k.startswith(drop)}
+    out = subprocess.run(
+        [sys.executable, "-c", PROBE, first],
+        env={**base, **env},
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return json.loads(out.stdout)
+
+
+def test_import_surfphase_pins_avx2_and_an_export_wins():
+    assert _probe("surfphase")["capability"] == "AVX2"
+    native = _probe("torch")["capability"]  # torch alone: the machine's best
+    assert _probe("surfphase", SURFPHASE_CPU_KERNELS="native")["capability"] == native
+    assert _probe("surfphase", ATEN_CPU_CAPABILITY="default")["capability"] == "DEFAULT"
+    # Pinned, the numbers are those of an explicit AVX2 run (another machine's).
+    pinned = _probe("surfphase")
+    explicit = _probe("torch", ATEN_CPU_CAPABILITY="avx2")
+    assert pinned == explicit
