@@ -21,7 +21,7 @@ mixed cluster), not only on the one that ran it:
 * ``ATEN_CPU_CAPABILITY=avx2``: PyTorch's own kernels (element-wise maths, reductions)
   take their AVX2 build, not the AVX-512 one a newer CPU would pick. The two round
   differently: a 4-frame stage-1 fit run both ways on one machine differs in every
-  surfel parameter, and its held-out PSNR by 0.06 dB (BENCHMARKS.md, determinism).
+  surfel parameter, and its held-out PSNR by 0.03–0.06 dB (BENCHMARKS.md, determinism).
 * ``MKL_CBWR=AVX2``: Intel MKL's conditional numerical reproducibility (its matrix
   products take the AVX2 code path on every CPU that has it); likewise a different fit
   from the default on an AVX-512 machine.
