@@ -177,6 +177,9 @@ def run_benchmark(
     if unknown:
         raise ValueError(f"bench fit: unknown variants {unknown}; known: {sorted(VARIANTS)}")
     torch.set_num_threads(threads)
+    # The first optimiser a process builds imports torch._dynamo (1.5-2.5 s here), which
+    # the first frame's steps would otherwise carry: build one before the timings.
+    torch.optim.Adam([torch.zeros(1, requires_grad=True)])
     work = Path(work)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
