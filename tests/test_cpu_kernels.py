@@ -46,11 +46,11 @@ def _probe(first: str, **env: str) -> dict:
 
 
 def test_import_surfphase_pins_avx2_and_an_export_wins():
-    assert _probe("surfphase")["capability"] == "AVX2"
+    pinned = _probe("surfphase")
+    assert pinned["capability"] == "AVX2"
     native = _probe("torch")["capability"]  # torch alone: the machine's best
     assert _probe("surfphase", SURFPHASE_CPU_KERNELS="native")["capability"] == native
     assert _probe("surfphase", ATEN_CPU_CAPABILITY="default")["capability"] == "DEFAULT"
     # Pinned, the numbers are those of an explicit AVX2 run (another machine's).
-    pinned = _probe("surfphase")
     explicit = _probe("torch", ATEN_CPU_CAPABILITY="avx2")
     assert pinned == explicit
