@@ -429,6 +429,11 @@ def quadratic_t(times: np.ndarray, values: np.ndarray) -> float:
     return float(np.max(np.abs(beta[2]) / np.sqrt(np.maximum(var, 1e-300))))
 
 
+#: Fewest rows of a track for :func:`smooth_tracks`' outlier pass: with fewer, the median
+#: residual is no scale of the centres' noise.
+OUTLIER_MIN_ROWS = 7
+
+
 def smooth_tracks(
     table: pd.DataFrame,
     seg: np.ndarray,
@@ -438,6 +443,7 @@ def smooth_tracks(
     end_t: float = 0.0,
     blend_window_s: float = 0.0,
     blend_order: int = 2,
+    outlier_k: float = 0.0,
 ) -> None:
     """Replace each track's centroids and velocities by a moving polynomial fit, in place.
 
@@ -463,53 +469,87 @@ def smooth_tracks(
     the track likewise; left out where the track is too short for it): one linear
     smoother whose kernel is the mean of the two, a short low-order window that follows
     a bubble's changes and a long higher-order one that averages more of its noise.
-    """
-    from scipy.signal import savgol_filter
 
+    With ``outlier_k`` > 0, on a track of at least :data:`OUTLIER_MIN_ROWS` rows, a
+    centre farther from that smoothed track than ``outlier_k`` times the track's median
+    distance (m, 3D) is an outlier (a frame where a view's silhouette was damaged: its
+    two views then disagree, but within the mask stage's gates): it is replaced by its
+    smoothed value and the track smoothed again, so one bad frame does not bend the
+    velocities of its neighbours. A moving polynomial is a least-squares fit, which one
+    gross error pulls over its whole window.
+    """
     if order < 1:
         raise ValueError(f"fit: track_order must be >= 1, got {order}")
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
+    ends, blend = (end_window_s, end_t), (blend_window_s, blend_order)
     for s in np.unique(seg):
         rows = np.flatnonzero(seg == s)
         rows = rows[np.argsort(table["time_s"].to_numpy()[rows])]
         if len(rows) <= order + 1 or int(table["bubble"].iloc[rows[0]]) == 0:
             continue
         t = table["time_s"].to_numpy()[rows]
-        dt = float(np.median(np.diff(t)))
-        win = savgol_window(window_s / dt, order, len(rows))
-        if win <= order:
-            continue
         p = table[xyz].to_numpy(np.float64)[rows]
-        kw = dict(window_length=win, polyorder=order, axis=0, mode="interp")
-        smooth = savgol_filter(p, **kw)
-        if end_window_s > 0 and order < 2:
-            w2 = savgol_window(end_window_s / dt, 2, len(rows))
-            if w2 >= 5:
-                para = savgol_filter(p, window_length=w2, polyorder=2, axis=0, mode="interp")
-                n, h = len(rows), win // 2
-                for rs, fit in ((slice(0, h), slice(0, w2)), (slice(n - h, n), slice(n - w2, n))):
-                    if quadratic_t(t[fit], p[fit]) > end_t:
-                        smooth[rs] = para[rs]
-        if blend_window_s > 0:
-            w3 = savgol_window(blend_window_s / dt, int(blend_order), len(rows))
-            if w3 >= int(blend_order) + 2:  # fewer frames: the polynomial is the data
-                long = savgol_filter(
-                    p, window_length=w3, polyorder=int(blend_order), axis=0, mode="interp"
-                )
-                smooth = 0.5 * (smooth + long)
+        smooth = _smooth_track(t, p, window_s, order, ends, blend)
+        if smooth is None:
+            continue
+        if outlier_k > 0 and len(rows) >= OUTLIER_MIN_ROWS:
+            r = np.linalg.norm(p - smooth, axis=1)
+            out = r > outlier_k * float(np.median(r))
+            if out.any():
+                p[out] = smooth[out]
+                smooth = _smooth_track(t, p, window_s, order, ends, blend)
         table.loc[table.index[rows], xyz] = smooth
         table.loc[table.index[rows], vel] = np.gradient(smooth, t, axis=0)
 
 
-def track_rules(p: Mapping) -> tuple[float, float, float, int]:
+def _smooth_track(
+    t: np.ndarray,
+    p: np.ndarray,
+    window_s: float,
+    order: int,
+    ends: tuple[float, float],
+    blend: tuple[float, int],
+) -> np.ndarray | None:
+    """One track's smoothed (n, 3) centres (m) from its (n,) times (s) and (n, 3)
+    centres, as :func:`smooth_tracks` describes (``ends``: ``(end_window_s, end_t)``,
+    ``blend``: ``(blend_window_s, blend_order)``); ``None`` when the window holds no
+    more than ``order`` frames."""
+    from scipy.signal import savgol_filter
+
+    (end_window_s, end_t), (blend_window_s, blend_order) = ends, blend
+    dt = float(np.median(np.diff(t)))
+    win = savgol_window(window_s / dt, order, len(t))
+    if win <= order:
+        return None
+    smooth = savgol_filter(p, window_length=win, polyorder=order, axis=0, mode="interp")
+    if end_window_s > 0 and order < 2:
+        w2 = savgol_window(end_window_s / dt, 2, len(t))
+        if w2 >= 5:
+            para = savgol_filter(p, window_length=w2, polyorder=2, axis=0, mode="interp")
+            n, h = len(t), win // 2
+            for rs, fit in ((slice(0, h), slice(0, w2)), (slice(n - h, n), slice(n - w2, n))):
+                if quadratic_t(t[fit], p[fit]) > end_t:
+                    smooth[rs] = para[rs]
+    if blend_window_s > 0:
+        w3 = savgol_window(blend_window_s / dt, int(blend_order), len(t))
+        if w3 >= int(blend_order) + 2:  # fewer frames: the polynomial is the data
+            long = savgol_filter(
+                p, window_length=w3, polyorder=int(blend_order), axis=0, mode="interp"
+            )
+            smooth = 0.5 * (smooth + long)
+    return smooth
+
+
+def track_rules(p: Mapping) -> tuple[float, float, float, int, float]:
     """:func:`smooth_tracks`' arguments after the window and order, from the fit's
     settings: ``(track_end_window_s, track_end_t, track_blend_window_s,
-    track_blend_order)``."""
+    track_blend_order, track_outlier_k)``."""
     return (
         float(p["track_end_window_s"]),
         float(p["track_end_t"]),
         float(p["track_blend_window_s"]),
         int(p["track_blend_order"]),
+        float(p["track_outlier_k"]),
     )
 
 

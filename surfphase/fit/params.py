@@ -110,6 +110,10 @@ DEFAULTS: dict = {
     # line that follows a bubble's changes and a long parabola that averages more noise.
     "track_blend_window_s": 0.008,
     "track_blend_order": 2,
+    # ... and on a track of at least 7 frames, a centre farther from that smoothed track
+    # than this many times the track's median distance is replaced by its smoothed value
+    # and the track smoothed again: one damaged frame does not bend its neighbours (0: off).
+    "track_outlier_k": 6.0,
     # Two views leave a bubble's extent along their bisector (the mean viewing direction)
     # unseen: surfels may sit anywhere in the visual hull's long corners. With a number k,
     # after every step a surfel farther than k·r along that axis from its bubble's centre
