@@ -371,6 +371,29 @@ def test_bench_preset_spans_what_labs_vary():
         campaign_settings("bench", fps=500.0)
 
 
+def test_bench_mixed_recombines_the_bench_settings():
+    """``bench-mixed`` keeps every value the bench preset has, each group of settings
+    permuted across the sessions on its own (a container with its bit depth), in
+    combinations the bench preset does not have; deterministic in the seed."""
+    from surfphase.synth.campaign import BENCH_SESSIONS, MIX_GROUPS, bench_specs
+
+    assert bench_specs("bench", 3) is BENCH_SESSIONS
+    mixed = bench_specs("bench-mixed", 3)
+    assert mixed == bench_specs("bench-mixed", 3) != bench_specs("bench-mixed", 4)
+    assert len(mixed) == len(BENCH_SESSIONS)
+    for group in MIX_GROUPS:
+        values = [[tuple(x[k] for k in group) for x in s] for s in (mixed, BENCH_SESSIONS)]
+        assert sorted(values[0]) == sorted(values[1]), group
+    assert {k for g in MIX_GROUPS for k in g} == set(BENCH_SESSIONS[0])
+    pairs = {(x["bit_depth"], x["container"]) for x in BENCH_SESSIONS}
+    assert all((x["bit_depth"], x["container"]) in pairs for x in mixed)
+    assert any(x not in BENCH_SESSIONS for x in mixed)
+    with pytest.raises(ValueError, match="per session"):
+        campaign_settings("bench-mixed", bubbles=2)
+    with pytest.raises(ValueError, match="not a bench preset"):
+        bench_specs("demo", 0)
+
+
 def test_tilted_bubbles_are_spheroids_off_the_vertical():
     from surfphase.synth.bubbles import TILT_DEG
 

@@ -402,15 +402,17 @@ def run_accuracy_bench(
     skip_run: bool = False,
     samples: int = SAMPLES,
     log=print,
+    preset: str = "bench",
 ) -> dict:
-    """The whole benchmark (module docstring). Returns ``{"rows": [...], "table": str,
+    """The whole benchmark (module docstring); ``preset``: the synth preset written when
+    no ``campaign`` is given (``bench`` or ``bench-mixed``). Returns ``{"rows": [...], "table": str,
     "smoothing": {...}, "config": {...}, "timings": {...}}``; also written to
     ``work/accuracy.json`` and ``work/accuracy.md``."""
     work = Path(work).resolve()
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     timings = {}
-    campaign = _bench_campaign(work, campaign, seed, sessions, frames, log)
+    campaign = _bench_campaign(work, campaign, seed, sessions, frames, log, preset)
     timings["synth_s"] = round(time.perf_counter() - t0, 1)
     all_sessions = pd.read_csv(campaign / "sessions.tsv", sep="\t", dtype=str)["session"]
     names = list(all_sessions[: sessions or len(all_sessions)])
@@ -460,16 +462,18 @@ def run_accuracy_bench(
     return result
 
 
-def _bench_campaign(work: Path, campaign, seed: int, sessions, frames, log) -> Path:
-    """The synthetic campaign: ``campaign``, or the bench preset written once into
-    ``work/campaign``."""
+def _bench_campaign(
+    work: Path, campaign, seed: int, sessions, frames, log, preset: str = "bench"
+) -> Path:
+    """The synthetic campaign: ``campaign``, or the ``preset`` (``bench``,
+    ``bench-mixed``) written once into ``work/campaign``."""
     from surfphase.synth.campaign import write_campaign
 
     if campaign is None:
         campaign = work / "campaign"
         if not (campaign / "synth.json").is_file():
-            log(f"writing the bench preset into {campaign}")
-            write_campaign(campaign, preset="bench", seed=seed, sessions=sessions, frames=frames)
+            log(f"writing the {preset} preset into {campaign}")
+            write_campaign(campaign, preset=preset, seed=seed, sessions=sessions, frames=frames)
     campaign = Path(campaign).resolve()
     if not (campaign / "sessions.tsv").is_file():
         raise FileNotFoundError(f"{campaign}: not a synthetic campaign (no sessions.tsv)")

@@ -33,6 +33,11 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--frames", type=int, help="frames per session (when generating)")
     p.add_argument("--seed", type=int, default=0, help="synth seed (when generating)")
     p.add_argument(
+        "--preset", default="bench", choices=["bench", "bench-mixed"],
+        help="synth preset (when generating): bench, or bench-mixed (its sessions' settings "
+        "recombined by the seed)",
+    )  # fmt: skip
+    p.add_argument(
         "--cores", type=int, default=2,
         help="CPU cores for the workflow (this many sessions run at once, one thread per job)",
     )  # fmt: skip
@@ -60,6 +65,7 @@ def _run(args: argparse.Namespace) -> int:
         sessions=args.sessions,
         frames=args.frames,
         seed=args.seed,
+        preset=args.preset,
         cores=args.cores,
         set_values=args.set,
         skip_run=args.skip_run,

@@ -14,8 +14,9 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--preset",
         default="demo",
-        choices=["demo", "tiny", "bench"],
-        help="base settings (bench: the varied sessions of `surfphase bench accuracy`)",
+        choices=["demo", "tiny", "bench", "bench-mixed"],
+        help="base settings (bench: the varied sessions of `surfphase bench accuracy`; "
+        "bench-mixed: their settings recombined by the seed)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--sessions", type=int, help="number of capture sessions")

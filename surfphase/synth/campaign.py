@@ -15,7 +15,8 @@ Layout under ``out`` (paths in the TSVs are relative to the TSV's folder)::
                                        mid, orbit01..11 at fit size, no distortion),
                                        top-level "fps" and "fit_scale"
 
-The ``bench`` preset (:data:`BENCH_SESSIONS`) differs: one rig per session
+The ``bench`` preset (:data:`BENCH_SESSIONS`; ``bench-mixed``: their settings recombined
+by the seed, :func:`bench_specs`) differs: one rig per session
 (``rigNN/calib/``), each session's videos in its own container (``<cam>.mp4``,
 ``<cam>.avi``, ``<cam>.tif``, ``<cam>.cih`` + ``.mraw``; :func:`write_video`), frames of
 its own size (W×H), bit depth, frame rate, backlight, noise and blur, fit scale
@@ -45,6 +46,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -149,6 +151,18 @@ PRESETS: dict[str, dict] = {
         "heldout": True,
     },
 }
+PRESETS["bench-mixed"] = dict(PRESETS["bench"])
+#: The presets of varied sessions, one rig each: ``bench`` (:data:`BENCH_SESSIONS` as
+#: they are) and ``bench-mixed`` (their settings recombined by the seed,
+#: :func:`bench_specs`).
+BENCH_PRESETS = ("bench", "bench-mixed")
+#: What ``bench-mixed`` recombines: each group of :data:`BENCH_SESSIONS`' keys is
+#: shuffled across the sessions on its own (a container keeps its bit depth: video is
+#: 8 bit).
+MIX_GROUPS: tuple[tuple[str, ...], ...] = (
+    ("angle",), ("elevation",), ("size",), ("fps",), ("bubbles",), ("merge",), ("shape",),
+    ("radius_mm",), ("backlight",), ("noise",), ("blur",), ("bit_depth", "container"),
+)  # fmt: skip
 #: Settings the bench preset fixes per session (BENCH_SESSIONS), not overridable.
 _BENCH_FIXED = ("fps", "native", "bubbles", "bit_depth")
 #: Fit scale of the bench preset (its held-out views' size; the workflow's ingest scale).
@@ -167,15 +181,13 @@ def campaign_settings(preset: str = "demo", **overrides) -> dict:
             continue
         if k not in cfg:
             raise ValueError(f"unknown synth option {k!r}; known: {sorted(cfg)}")
-        if preset == "bench" and k in _BENCH_FIXED:
-            raise ValueError(
-                f"synth --preset bench: {k} is set per session (BENCH_SESSIONS), not overridable"
-            )
+        if preset in BENCH_PRESETS and k in _BENCH_FIXED:
+            raise ValueError(f"synth --preset {preset}: {k} is set per session, not overridable")
         cfg[k] = type(cfg[k])(v)
-    if preset == "bench":
+    if preset in BENCH_PRESETS:
         if not 1 <= cfg["sessions"] <= len(BENCH_SESSIONS):
             raise ValueError(
-                f"synth --preset bench: sessions must be 1..{len(BENCH_SESSIONS)}, "
+                f"synth --preset {preset}: sessions must be 1..{len(BENCH_SESSIONS)}, "
                 f"got {cfg['sessions']}"
             )
         if cfg["frames"] < 2:
@@ -222,9 +234,29 @@ def session_scene(seed: int, index: int, cfg: dict, spec: dict | None = None) ->
     raise ValueError(f"synth seed {seed}: could not {what} in session {index + 1}")
 
 
-def session_spec(cfg: dict, index: int) -> dict:
-    """Everything that sets session ``index`` apart: a bench spec, or the preset's own
-    (square ``native`` frames, the reference rig, smooth backlight, PNG folders)."""
+def bench_specs(preset: str, seed: int) -> tuple[dict, ...]:
+    """The varied sessions' settings: :data:`BENCH_SESSIONS` for ``bench``; for
+    ``bench-mixed``, each group of :data:`MIX_GROUPS` permuted across the sessions by
+    ``seed`` on its own, so every value stays one the preset has, in combinations it
+    does not (views 25° apart at 10,000 fps, tilted spheroids on a dim backlight...)."""
+    if preset == "bench":
+        return BENCH_SESSIONS
+    if preset != "bench-mixed":
+        raise ValueError(f"not a bench preset: {preset!r}; choose from {BENCH_PRESETS}")
+    rng = np.random.default_rng([seed, 7331])
+    specs = [dict(s) for s in BENCH_SESSIONS]
+    for group in MIX_GROUPS:
+        order = rng.permutation(len(specs))
+        values = [{k: BENCH_SESSIONS[j][k] for k in group} for j in order]
+        for spec, v in zip(specs, values, strict=True):
+            spec.update(v)
+    return tuple(specs)
+
+
+def session_spec(cfg: dict, index: int, bench: Sequence[dict] = BENCH_SESSIONS) -> dict:
+    """Everything that sets session ``index`` apart: a bench spec (``bench``, as
+    :func:`bench_specs` gives them), or the preset's own (square ``native`` frames, the
+    reference rig, smooth backlight, PNG folders)."""
     if "native" in cfg and cfg["native"] > 0:
         return dict(
             angle=35.0, elevation=None, size=(cfg["native"], cfg["native"]), fps=cfg["fps"],
@@ -232,7 +264,7 @@ def session_spec(cfg: dict, index: int) -> dict:
             backlight="smooth", noise=None, blur=0.8 * cfg["native"] / 512,
             bit_depth=cfg["bit_depth"], container="png", fit_scale=FIT_SCALE, heldout=None,
         )  # fmt: skip
-    return {**BENCH_SESSIONS[index], "fit_scale": BENCH_FIT_SCALE, "heldout": BENCH_HELDOUT}
+    return {**bench[index], "fit_scale": BENCH_FIT_SCALE, "heldout": BENCH_HELDOUT}
 
 
 def session_rig(spec: dict) -> dict:
@@ -383,7 +415,9 @@ def write_campaign(
         preset: ``"demo"`` (2 sessions, 24 frames at 1500 fps, native 512, 8 clips),
             ``"tiny"`` (1 session, 6 frames, native 256, 2 clips, coarse meshes) or
             ``"bench"`` (:data:`BENCH_SESSIONS`, 24 frames each; ``sessions`` takes the
-            first N; fps, native, bubbles and bit_depth are set per session).
+            first N; fps, native, bubbles and bit_depth are set per session) or
+            ``"bench-mixed"`` (the same settings recombined by ``seed``,
+            :func:`bench_specs`).
         seed: everything is deterministic in it.
         overrides: ``sessions``, ``frames``, ``fps``, ``native``, ``bubbles``,
             ``clips``, ``clip_frames``, ``mesh_spacing`` (m), ``bit_depth`` (8/16),
@@ -434,9 +468,10 @@ def _build(root: Path, cfg: dict, preset: str, seed: int) -> dict:
     timings: dict[str, float] = {"calibration_s": 0.0}
     board = charuco.board_yaml_dict()
     (root / "board.yaml").write_text(yaml.safe_dump(board, sort_keys=False))
-    specs = [session_spec(cfg, i) for i in range(cfg["sessions"])]
-    # The demo and tiny presets share one rig; the bench preset has one per session.
-    shared = preset != "bench"
+    bench = bench_specs(preset, seed) if preset in BENCH_PRESETS else BENCH_SESSIONS
+    specs = [session_spec(cfg, i, bench) for i in range(cfg["sessions"])]
+    # The demo and tiny presets share one rig; the bench presets have one per session.
+    shared = preset not in BENCH_PRESETS
     rig_rows, rows, sessions = [], [], {}
     for i, spec in enumerate(specs):
         name = f"session{i + 1:02d}"
@@ -484,7 +519,7 @@ def _build(root: Path, cfg: dict, preset: str, seed: int) -> dict:
         "preset": preset,
         "seed": seed,
         "settings": cfg,
-        "fit_scale": BENCH_FIT_SCALE if preset == "bench" else FIT_SCALE,
+        "fit_scale": BENCH_FIT_SCALE if preset in BENCH_PRESETS else FIT_SCALE,
         "sessions": sessions,
         "clips": clips,
         "timings": timings,
