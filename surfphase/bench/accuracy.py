@@ -3,7 +3,8 @@ scored against the truth beside the classical two-view baseline.
 
 Steps (:func:`run_accuracy_bench`):
 
-1. the campaign: ``surfphase synth --preset bench`` (or a given one), written once;
+1. the campaign: ``surfphase synth --preset bench`` (``--preset bench-mixed``: its
+   settings recombined by the seed; or a given campaign), written once;
 2. the workflow on it with the config ``surfphase new-campaign`` writes (the project's
    ``config/config.yaml``) and :data:`BENCH_CONFIG` on top — refinement off, ingest
    scale 0.5 (the preset's native frames are 192–320 px) — through its ``evaluate``
