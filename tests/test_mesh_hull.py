@@ -444,11 +444,42 @@ def test_a_bubble_hidden_behind_another_in_one_view_is_meshed_whole():
     behind = (np.hypot(uu - uv[0], vv - uv[1]) <= rho) & (labels[1] == 3)
     p = mesh_params({"surface": "hull"})
     got = {}
-    for name, hidden in (("crescent", None), ("whole", {5: [None, behind]})):
-        verts, faces, ids = hull_mesh_frame(cams, labels, p, hidden=hidden)
+    # The crescent's centroid is off the sphere's image: with hull_agreeing (default) a
+    # bubble the fit does not report and whose views disagree is not meshed at all.
+    assert 5 not in hull_mesh_frame(cams, labels, p)[2]
+    loose = {**p, "hull_agreeing": False}
+    for name, hidden, q in (("crescent", None, loose), ("whole", {5: [None, behind]}, p)):
+        verts, faces, ids = hull_mesh_frame(cams, labels, q, hidden=hidden)
         v, f = _bubble_mesh(verts, faces, ids, 5)
         d_xz = np.ptp(v @ np.c_[[0, 0, 1], [1, 0, 0]], axis=0)  # bisector z, across x
         got[name] = (abs(signed_volume(v, f)) / (4 / 3 * np.pi * r**3), d_xz[0] / d_xz[1])
     vol, ratio = got["whole"]
     assert abs(vol - 1) < 0.08 and abs(ratio - 1) < 0.15, got
     assert got["crescent"][0] < 0.8, got
+
+
+def test_an_id_the_two_views_give_to_different_things_is_not_meshed():
+    """Labels of a sphere (id 2, 0.8 mm) seen by both views, and an id 7 that cam0's
+    masks give to a thin strip (2 × 40 px) and cam1's to a speck (3 × 3 px), their
+    centroids the images of one point 5 mm from the sphere: the two are no one object
+    (sizes 3× apart there). The sphere is meshed within 8 % of its volume; id 7 gets no
+    hull, unless ``hull_agreeing`` is off or the fit reports it there (a ``centres``
+    entry)."""
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+
+    cams = _rig(40.0, 6.0)
+    r = 0.8e-3
+    labels = [_sphere_labels(c, {2: (CENTRE, r)}) for c in cams]
+    ghost = CENTRE + np.array([0.002, -0.001, 0.004])
+    (u0, v0), (u1, v1) = (np.round(c.project(ghost[None], distort=False)[0]) for c in cams)
+    labels[0][int(v0) : int(v0) + 2, int(u0) - 20 : int(u0) + 20] = 7
+    labels[1][int(v1) - 1 : int(v1) + 2, int(u1) - 1 : int(u1) + 2] = 7
+    p = mesh_params({"surface": "hull"})
+    verts, faces, ids = hull_mesh_frame(cams, labels, p)
+    assert set(np.unique(ids)) == {2}
+    v, f = _bubble_mesh(verts, faces, ids, 2)
+    assert abs(abs(signed_volume(v, f)) / (4 / 3 * np.pi * r**3) - 1) < 0.08
+    loose = hull_mesh_frame(cams, labels, {**p, "hull_agreeing": False})[2]
+    assert 7 in loose
+    assert 7 in hull_mesh_frame(cams, labels, p, centres={7: ghost})[2]

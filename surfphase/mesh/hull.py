@@ -194,19 +194,29 @@ MAX_HULL_VOXELS = 128
 
 def bubble_pieces(
     cameras: Sequence[Camera], labels: Sequence[np.ndarray]
-) -> list[tuple[int, np.ndarray, float, list[np.ndarray]]]:
+) -> list[tuple[int, np.ndarray, float, list[np.ndarray], bool]]:
     """Where each bubble is, roughly, and what of each view's labels is it.
 
-    Per id ≥ 1 that both views' labels show: ``(id, centre, radius, masks)``, the
-    (3,) centre (metres) its silhouettes' centroids triangulate to, the radius (metres,
-    the silhouettes' mean equivalent radius √(area/π) times depth / focal) and its two
-    (H, W) bool silhouettes. The nucleation region
-    (:data:`~surfphase.masks.anchors.NUCLEATION_ID`) holds every attached bubble, and the
-    two views need not hold the same pieces of it: one entry per pair of pieces the two
-    views agree on (:func:`surfphase.masks.anchors.agreeing_pieces`); with no such
-    pair, its whole silhouettes as one.
+    Per id ≥ 1 that both views' labels show: ``(id, centre, radius, masks, agree)``,
+    the (3,) centre (metres) its silhouettes' centroids triangulate to, the radius
+    (metres, the silhouettes' mean equivalent radius √(area/π) times depth / focal), its
+    two (H, W) bool silhouettes, and whether the two are one object by the rule of the
+    nucleation region's pieces (the centroids' point reprojects within
+    :data:`~surfphase.masks.anchors.PIECE_REPROJ_R` of each silhouette's equivalent
+    radius, the sizes there within :data:`~surfphase.masks.anchors.PIECE_SIZE_RATIO`).
+    The nucleation region (:data:`~surfphase.masks.anchors.NUCLEATION_ID`) holds every
+    attached bubble, and the two views need not hold the same pieces of it: one entry
+    per pair of pieces the two views agree on
+    (:func:`surfphase.masks.anchors.agreeing_pieces`); with no such pair, its whole
+    silhouettes as one (``agree`` False).
     """
-    from surfphase.masks.anchors import NUCLEATION_ID, agreeing_pieces, pair_sphere
+    from surfphase.masks.anchors import (
+        NUCLEATION_ID,
+        PIECE_REPROJ_R,
+        PIECE_SIZE_RATIO,
+        agreeing_pieces,
+        pair_sphere,
+    )
 
     lab0, lab1 = (np.asarray(lb) for lb in labels[:2])
     out = []
@@ -216,7 +226,7 @@ def bubble_pieces(
         found = []
         if b == NUCLEATION_ID:
             found = [
-                (int(b), X, r, [m0, m1])
+                (int(b), X, r, [m0, m1], True)
                 for X, r, m0, m1 in agreeing_pieces(cameras, lab0, lab1, int(b))
             ]
         if not found:
@@ -228,7 +238,8 @@ def bubble_pieces(
                 areas.append(float(len(rr)))
             sp = pair_sphere(cameras, uvs, areas)
             if sp is not None and sp[1] > 0:
-                found = [(int(b), sp[0], sp[1], masks)]
+                agree = sp[2] <= PIECE_REPROJ_R and sp[3] <= PIECE_SIZE_RATIO
+                found = [(int(b), sp[0], sp[1], masks, bool(agree and b != NUCLEATION_ID))]
         out += found
     return out
 
