@@ -463,8 +463,8 @@ def test_an_id_the_two_views_give_to_different_things_is_not_meshed():
     masks give to a thin strip (2 × 40 px) and cam1's to a speck (3 × 3 px), their
     centroids the images of one point 5 mm from the sphere: the two are no one object
     (sizes 3× apart there). The sphere is meshed within 8 % of its volume; id 7 gets no
-    hull, unless ``hull_agreeing`` is off or the fit reports it there (a ``centres``
-    entry)."""
+    hull, unless ``hull_agreeing`` is off or the fit reports it, there (a ``centres``
+    entry) or in another frame (``tracked``)."""
     from surfphase.mesh.measure import signed_volume
     from surfphase.mesh.stage import hull_mesh_frame, mesh_params
 
@@ -483,3 +483,4 @@ def test_an_id_the_two_views_give_to_different_things_is_not_meshed():
     loose = hull_mesh_frame(cams, labels, {**p, "hull_agreeing": False})[2]
     assert 7 in loose
     assert 7 in hull_mesh_frame(cams, labels, p, centres={7: ghost})[2]
+    assert 7 in hull_mesh_frame(cams, labels, p, tracked={2, 7})[2]

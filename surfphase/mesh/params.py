@@ -52,13 +52,14 @@ DEFAULTS: dict = {
     # fit's bubbles.csv (the triangulated sub-pixel silhouette centres, smoothed along
     # its track), where the fit reports it (surfphase.mesh.surfaces.hull_mesh_frame).
     "hull_at_centres": True,
-    # ... and a bubble (id >= 1) meshed only in frames where the fit reports it or its two
-    # silhouettes are one object (their centroids' point reprojects within 0.25 of each
-    # one's equivalent radius, their sizes there within 1.5x: the nucleation region's
-    # rule, surfphase.mesh.hull.bubble_pieces): an id the two views' masks give to
-    # different things (a strip along the plate's edge in one view, a border speck in the
-    # other) otherwise gets a hull where their rays happen to cross, millimetres from any
-    # bubble (False: every id both views show).
+    # ... and an id (>= 1) that the fit's bubbles.csv never reports meshed only in frames
+    # where its two silhouettes are one object (their centroids' point reprojects within
+    # 0.25 of each one's equivalent radius, their sizes there within 1.5x: the nucleation
+    # region's rule, surfphase.mesh.hull.bubble_pieces): an id the two views' masks give
+    # to different things (a strip along the plate's edge in one view, a border speck in
+    # the other) otherwise gets a hull where their rays happen to cross, millimetres from
+    # any bubble. A reported bubble is meshed in every frame both views show it (one the
+    # border cuts disagrees there). False: every id both views show.
     "hull_agreeing": True,
     # ... and each bubble's mesh scaled about its centre so that its images have the
     # areas of its silhouettes at the recording's native resolution (the masks'

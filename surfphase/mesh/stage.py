@@ -422,6 +422,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
                 None if s.centres is None else s.centres.get(int(surf["frame"][t])),
                 None if s.areas is None else s.areas.get(int(surf["frame"][t])),
                 hidden_parts(s, t, views, labs),
+                set().union(*s.centres.values()) if s.centres else set(),
             )
             vel = bubble_vertex_velocities(
                 verts, vbub, surf["means"][t][a], sb, surf["velocity"][t][a]
