@@ -464,7 +464,7 @@ def test_an_id_the_two_views_give_to_different_things_is_not_meshed():
     centroids the images of one point 5 mm from the sphere: the two are no one object
     (sizes 3× apart there). The sphere is meshed within 8 % of its volume; id 7 gets no
     hull, unless ``hull_agreeing`` is off or the fit reports it, there (a ``centres``
-    entry) or in another frame (``tracked``)."""
+    entry) or in another frame (``spared``)."""
     from surfphase.mesh.measure import signed_volume
     from surfphase.mesh.stage import hull_mesh_frame, mesh_params
 
@@ -483,4 +483,23 @@ def test_an_id_the_two_views_give_to_different_things_is_not_meshed():
     loose = hull_mesh_frame(cams, labels, {**p, "hull_agreeing": False})[2]
     assert 7 in loose
     assert 7 in hull_mesh_frame(cams, labels, p, centres={7: ghost})[2]
-    assert 7 in hull_mesh_frame(cams, labels, p, tracked={2, 7})[2]
+    assert 7 in hull_mesh_frame(cams, labels, p, spared={2, 7})[2]
+
+
+def test_spared_ids_are_the_reported_bubbles_and_those_cut_in_both_views():
+    """``spared_ids``: every id ``bubbles.csv`` reports in any frame, and at this frame
+    the ids whose silhouettes touch the image border in both input views (not one)."""
+    from types import SimpleNamespace
+
+    from surfphase.mesh.stage import spared_ids
+
+    lab = np.full((2, 20, 30), -1, np.int32)
+    lab[1, 0:3, 10:14] = 3  # the top border, view 0
+    lab[1, 8:12, 0:2] = 4  # the left border, view 0
+    other = np.full((2, 20, 30), -1, np.int32)
+    other[1, 0:2, 5:9] = 3  # the top border, view 1
+    other[1, 8:12, 10:14] = 4  # inside, view 1
+    s = SimpleNamespace(centres={0: {5: np.zeros(3)}, 1: {6: np.zeros(3)}}, masks=[lab, other])
+    assert spared_ids(s, 1) == {3, 5, 6}
+    assert spared_ids(s, 0) == {5, 6}
+    assert spared_ids(SimpleNamespace(centres=None, masks=[lab, other]), 1) == {3}

@@ -58,8 +58,9 @@ DEFAULTS: dict = {
     # region's rule, surfphase.mesh.hull.bubble_pieces): an id the two views' masks give
     # to different things (a strip along the plate's edge in one view, a border speck in
     # the other) otherwise gets a hull where their rays happen to cross, millimetres from
-    # any bubble. A reported bubble is meshed in every frame both views show it (one the
-    # border cuts disagrees there). False: every id both views show.
+    # any bubble. A reported bubble is meshed in every frame both views show it, and so is
+    # one the border cuts in both views (cut, they disagree; surfphase.mesh.stage.
+    # spared_ids). False: every id both views show.
     "hull_agreeing": True,
     # ... and each bubble's mesh scaled about its centre so that its images have the
     # areas of its silhouettes at the recording's native resolution (the masks'

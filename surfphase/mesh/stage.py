@@ -341,6 +341,19 @@ def sphere_shapes(
     return out
 
 
+def spared_ids(s: _Session, t: int) -> set[int]:
+    """Ids meshed at position ``t`` whether or not their two silhouettes are one object
+    (``mesh: hull_agreeing``): the bubbles the fit reports in some frame, and those the
+    border cuts in both input views there (their cut silhouettes' centroids are not one
+    point's images; a bubble leaving the frame that the views never agree on)."""
+    from surfphase.masks.anchors import border_ids
+
+    out = set().union(*s.centres.values()) if s.centres else set()
+    if s.masks is not None and len(s.masks) >= 2:
+        out |= set.intersection(*(border_ids(np.asarray(m[t])) for m in s.masks[:2]))
+    return out
+
+
 def bubble_centres(table: pd.DataFrame) -> dict[int, dict[int, np.ndarray]]:
     """``{frame: {bubble: (3,) centre m}}`` of a fit's ``bubbles.csv`` rows with ids ≥ 1
     and a finite centre."""
@@ -422,7 +435,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
                 None if s.centres is None else s.centres.get(int(surf["frame"][t])),
                 None if s.areas is None else s.areas.get(int(surf["frame"][t])),
                 hidden_parts(s, t, views, labs),
-                set().union(*s.centres.values()) if s.centres else set(),
+                spared_ids(s, t),
             )
             vel = bubble_vertex_velocities(
                 verts, vbub, surf["means"][t][a], sb, surf["velocity"][t][a]

@@ -98,14 +98,15 @@ def hull_mesh_frame(
     centres: dict[int, np.ndarray] | None = None,
     areas: dict[int, list[float]] | None = None,
     hidden: dict[int, list[np.ndarray | None]] | None = None,
-    tracked: set[int] | frozenset[int] = frozenset(),
+    spared: set[int] | frozenset[int] = frozenset(),
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mesh of one frame's bubbles as their elliptic hulls (``mesh: surface: hull``).
 
     Every id that both input views' (H, W) labels show (with ``hull_agreeing``, an id
     ≥ 1 only where its two silhouettes are one object,
-    :func:`surfphase.mesh.hull.bubble_pieces`, or it is in ``tracked``, the ids the fit
-    reports in some frame, or has a ``centres`` entry) is meshed on its own grid
+    :func:`surfphase.mesh.hull.bubble_pieces`, or it is in ``spared``,
+    :func:`surfphase.mesh.stage.spared_ids`, or has a ``centres`` entry) is meshed on
+    its own grid
     (:func:`surfphase.mesh.hull.bubble_hull_volume`, ``hull_voxels_per_radius``), cut at
     the plate (``floor_y``) and cleaned; an id in several pieces (the nucleation region,
     id 0, can hold different pieces in each view) once per pair of pieces the two views
@@ -131,7 +132,7 @@ def hull_mesh_frame(
     verts, faces, ids, n = [], [], [], 0
     for b, centre, radius, masks, agree in bubble_pieces(views, labels):
         behind = (hidden or {}).get(b) if b >= 1 else None
-        known = b in tracked or (bool(centres) and b in centres) or behind is not None
+        known = b in spared or (bool(centres) and b in centres) or behind is not None
         if p["hull_agreeing"] and b >= 1 and not (agree or known):
             continue  # never one object in both views: a hull would be a ghost
         if behind is not None:
