@@ -190,3 +190,36 @@ def test_inconsistent_pair_is_split(rig_images, tmp_path):
     true = default_rig()
     for n, cam in cams.items():
         assert abs(cam.K[0, 0] / true[n].K[0, 0] - 1) < 0.005
+
+
+def test_a_view_with_all_corners_but_one_on_a_line_is_rejected(tmp_path, monkeypatch):
+    """The rig of ``synth --preset bench-mixed --seed 2``'s session03: cam0's pose008
+    shows 5 corners, 4 of them on one column of the board, so no homography of the
+    board. Used, it pulled cam0's single-camera calibration to fx 31 px with its
+    principal point at (−283, 106) px (the truth: 450 px, (129, 126)); every frame of
+    the session was undistorted through that and no bubble was found. Rejected, the
+    calibration recovers the truth; used anyway, the calibration stops, naming it."""
+    from surfphase.calib import solve
+    from surfphase.synth import campaign as sc
+
+    spec = sc.session_spec(sc.PRESETS["bench-mixed"], 2, sc.bench_specs("bench-mixed", 2))
+    rig = sc.session_rig(spec)
+    write_calibration_images({n: rig[n] for n in sc.INPUTS}, tmp_path / "calib", 4)
+    board = tmp_path / "board.yaml"
+    board.write_text(yaml.safe_dump(board_yaml_dict()))
+    dirs = {n: tmp_path / "calib" / n for n in sc.INPUTS}
+    cal = calibrate_rig_detailed(board, dirs, rig="rig03")
+    assert {"image": "pose008.png", "reason": "4 of its 5 corners on one line (no homography "
+            "of the board)"} in cal.report["cameras"]["cam0"]["rejected"]  # fmt: skip
+    for n in sc.INPUTS:
+        K, K_true = cal.cameras[n].K, rig[n].K
+        assert abs(K[0, 0] / K_true[0, 0] - 1) < 0.005
+        assert np.hypot(*(K[:2, 2] - K_true[:2, 2])) < 5.0
+    assert cal.report["warnings"] == []
+
+    def old_usable(det, min_corners=4):  # every view with enough corners, pose008 too
+        return None if len(det) >= min_corners else "too few"
+
+    monkeypatch.setattr(solve, "usable", old_usable)
+    with pytest.raises(ValueError, match=r"rig rig03: .*cam0.*principal point at .*outside"):
+        calibrate_rig_detailed(board, dirs, rig="rig03")

@@ -105,8 +105,12 @@ def detect_corners(
 def usable(det: Detection, min_corners: int = 4) -> str | None:
     """Why a detection cannot be used for calibration, or None if it can.
 
-    A view needs ``min_corners`` corners that are not all on one line (a homography
-    from collinear points is undetermined).
+    A view needs ``min_corners`` corners of which at least two lie off any one line:
+    the board-to-image homography needs four points with no three on a line, and with
+    all corners but one on a line it is undetermined (a one-parameter family of
+    homographies fits them). ``cv2.calibrateCamera`` starts the intrinsics from every
+    view's homography, and one such view can pull a camera's whole calibration away
+    (its principal point outside the image).
     """
     if len(det) == 0:
         return "board not found"
@@ -116,7 +120,24 @@ def usable(det: Detection, min_corners: int = 4) -> str | None:
     s = np.linalg.svd(xy, compute_uv=False)
     if s[1] < 1e-9 * max(s[0], 1e-12) or s[1] < 1e-6:
         return "corners all on one line"
+    on_line = most_on_one_line(xy, 1e-6 * float(s[0]) / np.sqrt(len(xy)))
+    if len(det) - on_line < 2:
+        return f"{on_line} of its {len(det)} corners on one line (no homography of the board)"
     return None
+
+
+def most_on_one_line(xy: np.ndarray, tol: float) -> int:
+    """The largest number of the (N, 2) points ``xy`` that lie on one line (within
+    ``tol``, in the points' units; exhaustive over the lines through two points)."""
+    n = len(xy)
+    best = min(n, 2)
+    for i in range(n - 2):
+        d = xy[i + 1 :] - xy[i]  # (M, 2): the lines through point i and a later one
+        e = xy - xy[i]  # (N, 2)
+        cross = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]  # (M, N)
+        on = np.abs(cross) <= tol * np.linalg.norm(d, axis=1)[:, None]
+        best = max(best, int(on.sum(axis=1).max()))
+    return best
 
 
 #: Dictionaries tried when the board is not found (each contains the smaller ones of its

@@ -332,6 +332,17 @@ def _single_cameras(
             detections[n], sizes[n], fix_k3, max_view_rms, max_refits
         )
         rejected[n] += rej
+        w, h = sizes[n]
+        cx, cy = float(K[0, 2]), float(K[1, 2])
+        if not (0.0 <= cx <= w - 1 and 0.0 <= cy <= h - 1):
+            raise ValueError(
+                f"{where}the single-camera calibration of {sources[n].label} puts its "
+                f"principal point at ({cx:.0f}, {cy:.0f}) px, outside its {w}×{h} images "
+                f"(fx {K[0, 0]:.1f} px, {len(poses)} views kept, {len(rej)} rejected for "
+                f"reprojection RMS above {max_view_rms} px): its views of the board do not "
+                "determine the camera. Record more views of the board, tilted and filling "
+                "more of the frame"
+            )
         if len(poses) < min_images:
             raise ValueError(
                 f"{where}only {len(poses)} views of {sources[n].label} fit a single-camera "
