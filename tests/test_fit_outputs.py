@@ -189,6 +189,13 @@ def test_track_ends_take_a_parabola_only_where_the_track_curves():
     # Inside (beyond the central differences next to the ends) nothing changes.
     np.testing.assert_array_equal(out["curved", 0.0][4:-4], out["curved", 0.005][4:-4])
     np.testing.assert_array_equal(out["straight", 0.0], out["straight", 0.005])
+    # A track shorter than the end window (9 frames, 4.5 ms) has no end apart from its
+    # middle: left as the line gives it, however it curves; 10 frames (5 ms) is tested.
+    for k, same in ((9, True), (10, False)):
+        short = [table_of(curved)[:k] for _ in range(2)]
+        smooth_tracks(short[0], np.zeros(k, int), 0.003, 1)
+        smooth_tracks(short[1], np.zeros(k, int), 0.003, 1, 0.005, 5.0)
+        assert np.array_equal(short[0]["vy"], short[1]["vy"]) == same
 
 
 def test_blended_track_is_the_mean_of_two_savitzky_golay_fits():

@@ -462,7 +462,8 @@ def smooth_tracks(
     ``end_window_s`` seconds (the parabola's quadratic coefficient more than ``end_t``
     standard errors from 0 in some axis, :func:`quadratic_t`), the half window of rows
     at that end takes a moving parabola over ``end_window_s`` (``savgol_filter`` of
-    order 2) instead.
+    order 2) instead; not on a track shorter than ``end_window_s``, whose ends are its
+    whole (the test would weigh the curvature of all of it).
 
     With ``blend_window_s`` > 0 the track is the mean of that smoothing and a second
     moving polynomial of order ``blend_order`` over ``blend_window_s`` seconds (capped at
@@ -522,7 +523,10 @@ def _smooth_track(
     if win <= order:
         return None
     smooth = savgol_filter(p, window_length=win, polyorder=order, axis=0, mode="interp")
-    if end_window_s > 0 and order < 2:
+    # A track shorter than the end window has no end apart from its middle: the test
+    # would weigh the curvature of all of it, which its centres' shape-mode biases
+    # give as much as an acceleration does.
+    if end_window_s > 0 and order < 2 and len(t) * dt >= end_window_s * (1.0 - 1e-9):
         w2 = savgol_window(end_window_s / dt, 2, len(t))
         if w2 >= 5:
             para = savgol_filter(p, window_length=w2, polyorder=2, axis=0, mode="interp")

@@ -102,7 +102,8 @@ DEFAULTS: dict = {
     # ... and at each end of a track whose centre curves significantly over its first /
     # last track_end_window_s seconds (the quadratic coefficient of a parabola more than
     # track_end_t standard errors from 0), a moving parabola over that window there: a
-    # straight line over a track's last window lags an accelerating bubble (0: off).
+    # straight line over a track's last window lags an accelerating bubble (0: off);
+    # not on a track shorter than that window (its ends are all of it).
     "track_end_window_s": 0.005,
     "track_end_t": 5.0,
     # ... and, with a window > 0 (seconds), the track is the mean of that and a second
