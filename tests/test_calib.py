@@ -12,7 +12,7 @@ import yaml
 
 from surfphase.calib import calibrate_rig, calibrate_rig_detailed, load_board
 from surfphase.calib.bundle import _mat_to_rt, _Problem
-from surfphase.cameras import load_cameras
+from surfphase.cameras import load_cameras, save_cameras
 from surfphase.cli import main
 from surfphase.synth.charuco import board_yaml_dict, write_calibration_images
 from surfphase.synth.rig import SCENE_CENTER, default_rig
@@ -192,7 +192,7 @@ def test_inconsistent_pair_is_split(rig_images, tmp_path):
         assert abs(cam.K[0, 0] / true[n].K[0, 0] - 1) < 0.005
 
 
-def test_a_view_with_all_corners_but_one_on_a_line_is_rejected(tmp_path, monkeypatch):
+def test_a_view_with_all_corners_but_one_on_a_line_is_rejected(tmp_path, monkeypatch, capsys):
     """The rig of ``synth --preset bench-mixed --seed 2``'s session03: cam0's pose008
     shows 5 corners, 4 of them on one column of the board, so no homography of the
     board. Used, it pulled cam0's single-camera calibration to fx 31 px with its
@@ -216,6 +216,18 @@ def test_a_view_with_all_corners_but_one_on_a_line_is_rejected(tmp_path, monkeyp
         assert abs(K[0, 0] / K_true[0, 0] - 1) < 0.005
         assert np.hypot(*(K[:2, 2] - K_true[:2, 2])) < 5.0
     assert cal.report["warnings"] == []
+
+    # The same through `surfphase bench calib-campaign`, on a campaign of that one rig.
+    (tmp_path / "gt").mkdir()
+    save_cameras(tmp_path / "gt" / "cameras.json", rig)
+    (tmp_path / "rigs.tsv").write_text(
+        "rig\tboard\tcam0\tcam1\nrig03\tboard.yaml\tcalib/cam0\tcalib/cam1\n"
+    )
+    (tmp_path / "sessions.tsv").write_text("session\trig\tgt\nsession03\trig03\tgt\n")
+    capsys.readouterr()
+    assert main(["bench", "calib-campaign", "--campaign", str(tmp_path)]) == 0
+    row = json.loads(capsys.readouterr().out)["rigs"]["rig03"]
+    assert row["focal_err_pct"] < 0.5 and row["pp_err_px"] < 5.0 and row["warnings"] == 0
 
     def old_usable(det, min_corners=4):  # every view with enough corners, pose008 too
         return None if len(det) >= min_corners else "too few"

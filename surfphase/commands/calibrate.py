@@ -135,17 +135,7 @@ def _bench(args: argparse.Namespace) -> int:
             board_from_dict(board_yaml_dict()), {n: Path(tmp) / n for n in inputs}, rig="synthetic"
         )
         t2 = time.perf_counter()
-    rows = {}
-    for n in inputs:
-        c, g = cal.cameras[n], true[n]
-        dR = c.R @ g.R.T
-        rows[n] = {
-            "focal_err_pct": float(100 * np.max(np.abs(np.diag(c.K)[:2] / np.diag(g.K)[:2] - 1))),
-            "pp_err_px": float(np.max(np.abs(c.K[:2, 2] - g.K[:2, 2]))),
-            "pp_sd_px": float(max(cal.report["cameras"][n]["sd_px"][k] for k in ("cx", "cy"))),
-            "rot_err_deg": float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))),
-            "rms_px": cal.report["cameras"][n]["rms_px"],
-        }
+    rows = {n: _camera_errors(cal, n, true[n]) for n in inputs}
     c0, c1 = inputs[:2]
     b = np.linalg.norm(cal.cameras[c1].center - cal.cameras[c0].center)
     bt = np.linalg.norm(true[c1].center - true[c0].center)
@@ -159,6 +149,66 @@ def _bench(args: argparse.Namespace) -> int:
         "cameras": rows,
     }
     print(json.dumps(out, indent=1))
+    return 0
+
+
+def _camera_errors(cal, name: str, true) -> dict:
+    """Camera ``name`` of a calibration (:class:`surfphase.calib.Calibration`) against
+    its ``true`` camera: focal length (% , worse of fx, fy), principal point (px, worse
+    axis), its stated sd (px), rotation (degrees, lab frame), reprojection RMS (px)."""
+    c = cal.cameras[name]
+    dR = c.R @ true.R.T
+    return {
+        "focal_err_pct": float(100 * np.max(np.abs(np.diag(c.K)[:2] / np.diag(true.K)[:2] - 1))),
+        "pp_err_px": float(np.max(np.abs(c.K[:2, 2] - true.K[:2, 2]))),
+        "pp_sd_px": float(max(cal.report["cameras"][name]["sd_px"][k] for k in ("cx", "cy"))),
+        "rot_err_deg": float(np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1)))),
+        "rms_px": cal.report["cameras"][name]["rms_px"],
+    }
+
+
+def _bench_campaign(args: argparse.Namespace) -> int:
+    """Calibrate every rig of a synthetic campaign (``surfphase synth``'s ``rigs.tsv``)
+    and compare each camera with the truth of the first session on that rig
+    (``sessions.tsv``'s ``gt`` column: ``<gt>/cameras.json``); prints JSON: per rig the
+    worse camera's errors and the views rejected, then the mean and worst over rigs."""
+    import warnings
+
+    import pandas as pd
+
+    from surfphase.calib import calibrate_rig_detailed
+    from surfphase.cameras import load_cameras
+
+    root = Path(args.campaign)
+    rigs = pd.read_csv(root / "rigs.tsv", sep="\t", dtype=str)
+    sessions = pd.read_csv(root / "sessions.tsv", sep="\t", dtype=str)
+    out: dict[str, dict] = {}
+    for r in rigs.to_dict("records"):
+        gt = sessions.loc[sessions["rig"] == r["rig"], "gt"].dropna()
+        if gt.empty:
+            continue
+        true = load_cameras(root / gt.iloc[0] / "cameras.json")
+        names = [k for k in r if k not in ("rig", "board", "timestamps") and isinstance(r[k], str)]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            cal = calibrate_rig_detailed(
+                root / r["board"], {n: root / r[n] for n in names}, rig=r["rig"]
+            )
+        errs = [_camera_errors(cal, n, true[n]) for n in names]
+        out[r["rig"]] = {
+            "focal_err_pct": max(e["focal_err_pct"] for e in errs),
+            "pp_err_px": max(e["pp_err_px"] for e in errs),
+            "rejected_views": sum(len(cal.report["cameras"][n]["rejected"]) for n in names),
+            "warnings": len(caught),
+        }
+    keys = ("focal_err_pct", "pp_err_px")
+    summary = {
+        "rigs": len(out),
+        **{f"mean_{k}": float(np.mean([v[k] for v in out.values()])) for k in keys},
+        **{f"worst_{k}": float(np.max([v[k] for v in out.values()])) for k in keys},
+        "rigs_warned": sum(v["warnings"] > 0 for v in out.values()),
+    }
+    print(json.dumps({"campaign": str(root), "summary": summary, "rigs": out}, indent=1))
     return 0
 
 
@@ -188,6 +238,16 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--poses", type=int, default=20, help="calibration poses to render")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=_bench)
+    p = bench_subparsers.add_parser(
+        "calib-campaign",
+        help="calibrate every rig of a synthetic campaign against its true cameras",
+        description="Calibrate each rig of CAMPAIGN's rigs.tsv (a campaign `surfphase "
+        "synth` wrote: its sessions' gt/cameras.json hold the truth) and print, per rig, "
+        "the worse camera's focal length (%) and principal point (px) errors, the views "
+        "rejected and the warnings, then the mean and worst over the rigs (JSON).",
+    )
+    p.add_argument("--campaign", required=True, help="a campaign folder `surfphase synth` wrote")
+    p.set_defaults(func=_bench_campaign)
     p = bench_subparsers.add_parser(
         "calib-uncertainty",
         help="are the calibration's stated sd honest? synthetic rigs with known truth",
