@@ -188,7 +188,10 @@ def _bench_campaign(args: argparse.Namespace) -> int:
         if gt.empty:
             continue
         true = load_cameras(root / gt.iloc[0] / "cameras.json")
-        names = [k for k in r if k not in ("rig", "board", "timestamps") and isinstance(r[k], str)]
+        cams = [c for c in rigs.columns if c.startswith("cam") and c[3:].isdigit()]
+        names = sorted(
+            (c for c in cams if isinstance(r[c], str) and r[c]), key=lambda c: int(c[3:])
+        )
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             cal = calibrate_rig_detailed(
