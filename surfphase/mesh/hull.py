@@ -37,8 +37,33 @@ import numpy as np
 from surfphase.cameras import Camera
 
 
+def closest_widths(half_widths: np.ndarray, tolerance: np.ndarray) -> np.ndarray:
+    """(2,) half-widths within ``half_widths ± tolerance`` (metres, (2,) each) that are
+    as close to equal as the tolerance allows: their mean where the two intervals
+    overlap (clipped into the overlap), else each moved its tolerance towards the other.
+
+    The least anisotropy of an ellipse with two given supports grows with the
+    difference of their squares, the more the closer the two directions are (views 25°
+    apart turn half-widths 10 % apart into axes 26 % apart): a difference the
+    silhouettes' pixels can make is no evidence of an elongated cross-section.
+    """
+    r = np.asarray(half_widths, np.float64)
+    tol = np.maximum(np.asarray(tolerance, np.float64), 0.0)
+    lo, hi = float(np.max(r - tol)), float(np.min(r + tol))
+    if lo <= hi:
+        return np.full(2, min(max(float(r.mean()), lo), hi))
+    big = int(np.argmax(r))
+    out = r.copy()
+    out[big] -= tol[big]
+    out[1 - big] += tol[1 - big]
+    return out
+
+
 def slice_ellipse(
-    dirs: np.ndarray, centres: np.ndarray, half_widths: np.ndarray
+    dirs: np.ndarray,
+    centres: np.ndarray,
+    half_widths: np.ndarray,
+    tolerance: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The ellipse closest to a circle with the given supports in two directions.
 
@@ -46,12 +71,16 @@ def slice_ellipse(
         dirs: (2, 2) unit across-directions ``a_k`` in the slice plane (x, z).
         centres: (2,) ``a_k · p`` of the strips' centre lines (metres).
         half_widths: (2,) the strips' half-widths ``r_k`` (metres).
+        tolerance: (2,) how far each half-width may be off (metres; the silhouettes'
+            pixels): the supports are then :func:`closest_widths`'. None: 0.
 
     Returns:
         ``(p, M)``: (2,) centre and (2, 2) symmetric positive-definite matrix with
         ``a_kᵀ M a_k = r_k²``; ``None`` when the directions are (nearly) parallel or no
         such ellipse exists.
     """
+    if tolerance is not None:
+        half_widths = closest_widths(half_widths, tolerance)
     a = np.asarray(dirs, np.float64)
     if abs(float(np.linalg.det(a))) < 1e-3:
         return None
@@ -75,6 +104,7 @@ def elliptic_hull_distance(
     cameras: Sequence[Camera],
     labels: Sequence[np.ndarray],
     centre_slices: int = 0,
+    width_tol_px: float = 0.0,
 ) -> np.ndarray:
     """Approximate signed distance (metres, positive outside) of every voxel centre to
     the elliptic hull of the bubbles the labels show (see the module docstring).
@@ -86,6 +116,9 @@ def elliptic_hull_distance(
         labels: per view, the frame's (H, W) int labels (−1 background, ids ≥ 0).
         centre_slices: the ellipses' centres smoothed over this many slices on each side
             (:func:`smooth_centres`; 0: each slice's own).
+        width_tol_px: each strip's half-width taken as known to this many of its view's
+            pixels (at the slice's distance from the view): the ellipse is the one
+            closest to a circle within that (:func:`closest_widths`); 0: exactly.
 
     Returns:
         (nx, ny, nz) float64: per voxel that both views give one id, its distance to
@@ -128,6 +161,8 @@ def elliptic_hull_distance(
     rho = np.linalg.norm(perp, axis=1)  # ... and the distance from it
     theta = np.arctan2(perp @ n2, perp @ n1)  # which epipolar plane
     s_cam = np.array([0.0, float((c1 - c0) @ u)])
+    # Metres per pixel per metre of distance from each view (its focal length, pixels).
+    per_px = np.array([2.0 / (c.K[0, 0] + c.K[1, 1]) for c in cameras[:2]])
     for b in np.unique(own[own >= 0]):
         mine = np.flatnonzero(own == b)
         # Slices one voxel thick where the bubble is.
@@ -146,7 +181,9 @@ def elliptic_hull_distance(
                 dirs.append(a)
                 cen.append(0.5 * (proj.min() + proj.max()))
                 half.append(0.5 * (proj.max() - proj.min()))
-            fit = slice_ellipse(np.array(dirs), np.array(cen), np.array(half))
+            dist = np.array([np.hypot(mid[0] - sc, mid[1]) for sc in s_cam])
+            tol = float(width_tol_px) * per_px * dist if width_tol_px > 0 else None
+            fit = slice_ellipse(np.array(dirs), np.array(cen), np.array(half), tol)
             if fit is not None:
                 slices.append((int(kk), sel, q, *fit))
         centres = smooth_centres(
@@ -279,6 +316,7 @@ def bubble_hull_volume(
     voxels_per_radius: float,
     trunc_voxels: float,
     centre_slices: int = 0,
+    width_tol_px: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, float] | None:
     """Signed distance volume of one bubble's elliptic hull on its own grid.
 
@@ -288,6 +326,7 @@ def bubble_hull_volume(
     voxels) over their box, with a margin, holds the distance: the elliptic hull's
     (:func:`elliptic_hull_distance`) where both views see ``b``, the distance to the
     silhouettes' visual hull elsewhere, clipped at ``trunc_voxels`` voxels.
+    ``centre_slices``, ``width_tol_px``: as :func:`elliptic_hull_distance`'s.
 
     Returns ``(sdf (nx, ny, nz) float32 m, origin (3,) m, voxel m)``, or None when no
     voxel is seen as ``b`` by both views.
@@ -309,7 +348,7 @@ def bubble_hull_volume(
     lo, hi = box[0] - margin, box[1] + margin
     shape = tuple(int(np.ceil(s)) + 1 for s in (hi - lo) / voxel)
     vis = silhouette_distance(lo, shape, voxel, list(cameras[:2]), [lb >= 0 for lb in own_labels])
-    ell = elliptic_hull_distance(lo, shape, voxel, cameras, own_labels, centre_slices)
+    ell = elliptic_hull_distance(lo, shape, voxel, cameras, own_labels, centre_slices, width_tol_px)
     trunc = float(trunc_voxels) * voxel
     sdf = np.clip(np.maximum(vis, ell), -trunc, trunc).astype(np.float32)
     return sdf, lo, voxel

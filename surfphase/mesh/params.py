@@ -48,6 +48,11 @@ DEFAULTS: dict = {
     # ... and each slice's ellipse centre a straight-line fit over this many slices on
     # either side (surfphase.mesh.hull.smooth_centres; 0: each slice's own)
     "hull_centre_slices": 4,
+    # ... and each slice's two half-widths taken as known to this many pixels of their
+    # views: the ellipse is the one closest to a circle within that (0: exactly; views at
+    # a small angle turn a pixel's difference between the widths into an elongated
+    # section, surfphase.mesh.hull.closest_widths)
+    "hull_width_tol_px": 0.5,
     # ... and each bubble's hull moved so that its centroid is the bubble's centre in the
     # fit's bubbles.csv (the triangulated sub-pixel silhouette centres, smoothed along
     # its track), where the fit reports it (surfphase.mesh.surfaces.hull_mesh_frame).

@@ -147,7 +147,7 @@ def hull_mesh_frame(
             vol = bubble_hull_volume(
                 views, own, b, c, r,
                 float(p["hull_voxels_per_radius"]), float(p["trunc_voxels"]),
-                int(p["hull_centre_slices"]),
+                int(p["hull_centre_slices"]), float(p["hull_width_tol_px"]),
             )  # fmt: skip
             if vol is not None:
                 break
