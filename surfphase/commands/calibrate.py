@@ -178,6 +178,7 @@ def _bench_campaign(args: argparse.Namespace) -> int:
 
     from surfphase.calib import calibrate_rig_detailed
     from surfphase.cameras import load_cameras
+    from surfphase.sheets import camera_columns
 
     root = Path(args.campaign)
     rigs = pd.read_csv(root / "rigs.tsv", sep="\t", dtype=str)
@@ -188,10 +189,7 @@ def _bench_campaign(args: argparse.Namespace) -> int:
         if gt.empty:
             continue
         true = load_cameras(root / gt.iloc[0] / "cameras.json")
-        cams = [c for c in rigs.columns if c.startswith("cam") and c[3:].isdigit()]
-        names = sorted(
-            (c for c in cams if isinstance(r[c], str) and r[c]), key=lambda c: int(c[3:])
-        )
+        names = [c for c in camera_columns(rigs.columns) if isinstance(r[c], str) and r[c]]
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             cal = calibrate_rig_detailed(

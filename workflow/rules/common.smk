@@ -27,6 +27,7 @@ from snakemake.exceptions import WorkflowError
 from snakemake.settings.types import DeploymentMethod
 from snakemake.utils import min_version, validate
 from surfphase.settings import key_hint, text_for_numbers, unknown_keys
+from surfphase.sheets import camera_columns as sheet_camera_columns
 from surfphase.views_params import REFINE_DEFAULTS
 
 min_version("8.0")
@@ -217,8 +218,7 @@ def resolve(sheet, value):
 
 def camera_columns(df):
     """Camera columns ``cam0, cam1, ...`` in numeric order."""
-    cols = [c for c in df.columns if c.startswith("cam") and c[3:].isdigit()]
-    return sorted(cols, key=lambda c: int(c[3:]))
+    return sheet_camera_columns(df.columns)
 
 
 sessions = read_sheet(
