@@ -113,6 +113,37 @@ def test_background_fit_follows_backlight_not_bubbles():
     assert np.max(np.abs(bg - true_bg)[truth < 0]) < 0.01
 
 
+def test_background_fit_follows_a_vignetted_corner_darker_than_the_plate_test():
+    """The synthetic generator's ``gradient`` backlight (vignetting, a diffuser's faint
+    waves and a left-to-right fall-off to 60 %) above a dark plate: its top-left
+    corner is under 0.6 × the image's 95th percentile, the plate's test. The backlight
+    is fitted there too, not extrapolated (which left the corner 29 % darker than the
+    fit: an object in every frame), and the plate stays out of the fit."""
+    from surfphase.synth.shadowgraph import background
+
+    h, w = 112, 144
+    true_bg = background("cam0", h, w, seed=0, pattern="gradient").astype(np.float64)
+    img = true_bg.copy()
+    img[96:] = 0.26 * true_bg[96:]  # the plate's top face ...
+    img[104:] = 0.03  # ... and its black front
+    assert img[0, 0] < 0.6 * np.percentile(img, 95)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    bubbles = [(60.0, 40.0, 8.0), (110.0, 60.0, 10.0)]
+    for cx, cy, r in bubbles:
+        img[np.hypot(xx - cx, yy - cy) < r] *= 0.2
+    img = np.clip(img + np.random.default_rng(0).normal(0, 0.005, img.shape), 0, 1)
+    bg = classical.estimate_background(img.astype(np.float32)).astype(np.float64)
+    false_contrast = (bg - true_bg) / bg
+    threshold = CLASSICAL_DEFAULTS["threshold_high"]
+    assert np.max(false_contrast[:90]) < threshold  # 0.29 in the corner before
+    assert np.max(np.abs(false_contrast[20:90, 20:-20])) < 0.05
+    labels, _ = classical.segment_frame(img.astype(np.float32))
+    found = {int(labels[int(cy), int(cx)]) for cx, cy, _ in bubbles}
+    assert min(found) >= 0 and len(found) == 2
+    # Nothing else above the plate: no instance in the vignetted corner.
+    assert set(np.unique(labels[:90])) <= {-1, *found}
+
+
 def test_empty_frame_has_no_instance():
     img, _ = shadowgraph(64, 64, [], seed=1)
     labels, scores = classical.segment_frame(img)

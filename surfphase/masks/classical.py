@@ -48,16 +48,32 @@ def _poly_design(x: np.ndarray, y: np.ndarray, degree: int) -> np.ndarray:
     return np.stack(cols, axis=-1)
 
 
+#: A large region darker than this fraction of the backlight is a dark structure (the
+#: heated plate), not backlight, for :func:`estimate_background`.
+DARK_STRUCTURE = 0.6
+
+
+def _lstsq(A: np.ndarray, b: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Least-squares coefficients of (n, k) design ``A`` against (n,) ``b`` over the rows
+    ``keep`` (normal equations: a 15-column system, far cheaper than an SVD of A)."""
+    Ak = A[keep]
+    return np.linalg.solve(Ak.T @ Ak + 1e-9 * np.eye(A.shape[1]), Ak.T @ b[keep])
+
+
 def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3) -> np.ndarray:
     """Smooth background of a (H, W) float image whose objects are darker than it.
 
     On a ≤64×64 area-downsampled copy, object pixels are those more than 20 % darker
     than a grey closing of 30 % of the shorter side (dark things narrower than that:
     bubbles) or darker than 0.6 × the 95th percentile (the plate); a 2D polynomial of total ``degree`` in normalised
-    pixel coordinates is fitted by least squares to the others, then refitted without
-    the pixels that stay clearly (2.5 robust σ and 5 %) below it. Vignetting and
-    uneven illumination are smooth and broad, so they are followed, not rejected.
-    Returns (H, W) float32.
+    pixel coordinates is fitted by least squares to the others. A region failing the
+    second test that does not reach the bottom border (where the plate enters) is
+    then judged against that polynomial instead (darker than 0.6 × it): a vignetted
+    corner is darker than 0.6 × the 95th percentile too, but not than the backlight
+    there, and left out it got the polynomial's extrapolation, up to 29 % too bright
+    (a static "object" in every frame). The polynomial is then refitted without the pixels that stay clearly (2.5 robust
+    σ and 5 %) below it. Vignetting and uneven illumination are smooth and broad, so
+    they are followed, not rejected. Returns (H, W) float32.
     """
     h, w = image.shape
     f = min(1.0, 64.0 / max(h, w))
@@ -75,15 +91,23 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
         small, cv2.MORPH_CLOSE, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE
     )
     # Large dark structures (the plate, dark to the border) fail the second test.
-    local = (small >= 0.8 * closed).ravel() & (b > 0.6 * np.percentile(b, 95))
+    narrow = (small >= 0.8 * closed).ravel()
+    bright = b > DARK_STRUCTURE * np.percentile(b, 95)
+    local = narrow & bright
     keep = local.copy()
     if keep.sum() < A.shape[1] * 3:
         keep = np.ones(b.size, bool)
-    coef = np.zeros(A.shape[1])
+    coef = _lstsq(A, b, keep)
+    # A dark region away from the bottom border (where the plate enters) is judged
+    # again, against the backlight there rather than the brightest of the image.
+    dark, n_dark = ndi.label(~bright.reshape(sh, sw), np.ones((3, 3)))
+    plate = np.unique(dark[-1][dark[-1] > 0])
+    again = ((dark > 0) & ~np.isin(dark, plate)).ravel() & narrow
+    again &= b > DARK_STRUCTURE * (A @ coef)
+    if n_dark and again.any() and keep.sum() >= A.shape[1] * 3:
+        local = keep = local | again
     for _ in range(iterations):
-        # Normal equations: a 15-column system, far cheaper than an SVD of A.
-        Ak = A[keep]
-        coef = np.linalg.solve(Ak.T @ Ak + 1e-9 * np.eye(A.shape[1]), Ak.T @ b[keep])
+        coef = _lstsq(A, b, keep)
         r = b - A @ coef
         sigma = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep]))) + 1e-6
         new_keep = local & (r > -np.maximum(2.5 * sigma, 0.05 * np.abs(A @ coef)))
