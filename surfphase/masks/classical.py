@@ -71,9 +71,10 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
     then judged against that polynomial instead (darker than 0.6 × it): a vignetted
     corner is darker than 0.6 × the 95th percentile too, but not than the backlight
     there, and left out it got the polynomial's extrapolation, up to 29 % too bright
-    (a static "object" in every frame). The polynomial is then refitted without the pixels that stay clearly (2.5 robust
-    σ and 5 %) below it. Vignetting and uneven illumination are smooth and broad, so
-    they are followed, not rejected. Returns (H, W) float32.
+    (a static "object" in every frame). The polynomial is then refitted without the
+    pixels that stay clearly (2.5 robust σ and 5 %) below it. Vignetting and uneven
+    illumination are smooth and broad, so they are followed, not rejected.
+    Returns (H, W) float32.
     """
     h, w = image.shape
     f = min(1.0, 64.0 / max(h, w))
@@ -97,15 +98,15 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
     keep = local.copy()
     if keep.sum() < A.shape[1] * 3:
         keep = np.ones(b.size, bool)
-    coef = _lstsq(A, b, keep)
-    # A dark region away from the bottom border (where the plate enters) is judged
-    # again, against the backlight there rather than the brightest of the image.
-    dark, n_dark = ndi.label(~bright.reshape(sh, sw), np.ones((3, 3)))
-    plate = np.unique(dark[-1][dark[-1] > 0])
-    again = ((dark > 0) & ~np.isin(dark, plate)).ravel() & narrow
-    again &= b > DARK_STRUCTURE * (A @ coef)
-    if n_dark and again.any() and keep.sum() >= A.shape[1] * 3:
-        local = keep = local | again
+    else:
+        # A dark region away from the bottom border (where the plate enters) is judged
+        # again, against the backlight there rather than the brightest of the image.
+        coef = _lstsq(A, b, keep)
+        dark, _ = ndi.label(~bright.reshape(sh, sw), np.ones((3, 3)))
+        plate = np.unique(dark[-1][dark[-1] > 0])
+        again = ((dark > 0) & ~np.isin(dark, plate)).ravel() & narrow
+        local = keep = local | (again & (b > DARK_STRUCTURE * (A @ coef)))
+    coef = np.zeros(A.shape[1])
     for _ in range(iterations):
         coef = _lstsq(A, b, keep)
         r = b - A @ coef
