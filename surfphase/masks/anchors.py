@@ -349,26 +349,6 @@ def _fill_to_border(mask: np.ndarray, at_border: tuple[bool, bool, bool, bool]) 
     ]
 
 
-def fit_outline(points: np.ndarray) -> tuple[float, float, float] | None:
-    """The ellipse fitted to outline points (least squares, ``cv2.fitEllipse``).
-
-    Args:
-        points: (N, 2) outline points, pixels (column, row), N ≥ 5.
-
-    Returns:
-        ``(u, v, area)``: the ellipse's centre (pixels) and area (pixels²), or None where
-        the fit fails or is degenerate.
-    """
-    try:
-        (u, v), (da, db), _ = cv2.fitEllipse(np.asarray(points, np.float32))
-    except cv2.error:
-        return None
-    area = np.pi * da * db / 4.0
-    if not np.isfinite([u, v, area]).all() or min(da, db) <= 0:
-        return None
-    return float(u), float(v), float(area)
-
-
 def region_owners(lab: np.ndarray, ring_px: int) -> np.ndarray:
     """Each pixel's nearest region id (the labels themselves where ``ring_px`` is 0)."""
     if ring_px <= 0:
@@ -436,12 +416,18 @@ def cut_centres(
     ring_px: int = ANCHOR_DEFAULTS["ring_px"],
     min_visible: float = ANCHOR_DEFAULTS["min_visible"],
     margin_px: int = 1,
+    max_aspect: float = ANCHOR_DEFAULTS["max_cut_aspect"],
+    max_area_error: float = ANCHOR_DEFAULTS["max_cut_area_error"],
 ) -> dict[int, tuple[float, float, float]]:
     """Centre and full area of each silhouette of ``ids`` that the image border cuts,
     from the ellipse fitted to the visible part of its outline
     (:func:`visible_outline`). A silhouette gets a centre where the fit has at least
-    ``_MIN_OUTLINE_POINTS`` points and the visible (cover-weighted) area is at least
-    ``min_visible`` of the fitted ellipse's.
+    ``_MIN_OUTLINE_POINTS`` points, the visible (cover-weighted) area is at least
+    ``min_visible`` of the fitted ellipse's, the ellipse's long axis is at most
+    ``max_aspect`` times its short axis and its part inside the frame
+    (:func:`ellipse_area_inside`) has the visible area to within ``max_area_error``: the
+    short arc of a silhouette mostly outside the frame is fitted as a flat ellipse that
+    closes just past the border, and its visible share then reads high (even above 1).
 
     Args:
         contrast: (H, W) relative darkness in [0, 1].
@@ -452,6 +438,9 @@ def cut_centres(
             (above 1: no fits, no centres).
         margin_px: outline points less than this (pixels) inside the outermost pixel
             centres are the frame's cut, not the silhouette's outline.
+        max_aspect: largest ratio of the fitted ellipse's long to short axis.
+        max_area_error: largest relative difference between the ellipse's area inside
+            the frame and the visible area.
 
     Returns:
         ``{id: (u, v, area)}``: the fitted ellipse's centre (pixels, column, row) and its
@@ -467,10 +456,39 @@ def cut_centres(
         vis = visible_outline(contrast, lab, owner, b, ring_px, margin_px)
         if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
             continue
-        fit = fit_outline(vis[0])
-        if fit is not None and vis[1] >= float(min_visible) * fit[2]:
-            out[b] = fit
+        ell = outline_ellipse(vis[0])
+        if ell is None or max(ell[2:4]) > float(max_aspect) * min(ell[2:4]):
+            continue
+        area = float(np.pi * ell[2] * ell[3])
+        inside = ellipse_area_inside(ell, lab.shape)
+        if vis[1] >= float(min_visible) * area and abs(inside - vis[1]) <= float(
+            max_area_error
+        ) * vis[1]:
+            out[b] = (ell[0], ell[1], area)
     return out
+
+
+def ellipse_area_inside(
+    ellipse: tuple[float, float, float, float, float], shape: tuple[int, int], step: float = 0.25
+) -> float:
+    """Area (pixels²) of an ellipse ``(u, v, a, b, angle)`` (:func:`outline_ellipse`)
+    inside an image of ``shape`` (H, W), whose pixels span [−0.5, W − 0.5] ×
+    [−0.5, H − 0.5]: counted on a grid of ``step`` pixels (error about the perimeter ×
+    ``step`` / 6)."""
+    u, v, a, b, ang = ellipse
+    h, w = shape
+    reach = max(a, b)
+    x0, x1 = max(-0.5, u - reach), min(w - 0.5, u + reach)
+    y0, y1 = max(-0.5, v - reach), min(h - 0.5, v + reach)
+    if x1 <= x0 or y1 <= y0:
+        return 0.0
+    xs = np.arange(x0 + step / 2, x1, step) - u
+    ys = np.arange(y0 + step / 2, y1, step) - v
+    t = np.radians(ang)
+    X, Y = np.meshgrid(xs, ys)
+    p = (X * np.cos(t) + Y * np.sin(t)) / a
+    q = (-X * np.sin(t) + Y * np.cos(t)) / b
+    return float((p * p + q * q <= 1.0).sum() * step * step)
 
 
 def outline_ellipse(points: np.ndarray) -> tuple[float, float, float, float, float] | None:

@@ -259,8 +259,11 @@ def frame_anchors(
                 cen.update(anchors.lobe_centroids(con, labels[c][t], young[t], int(ap["ring_px"])))
             cut = anchors.border_ids(labels[c][t])  # silhouettes the frame may cut
             fits = anchors.cut_centres(
-                con, labels[c][t], cut - {0}, int(ap["ring_px"]), float(ap["min_visible"])
-            )
+                con, labels[c][t], cut - {0}, int(ap["ring_px"]),
+                min_visible=float(ap["min_visible"]),
+                max_aspect=float(ap["max_cut_aspect"]),
+                max_area_error=float(ap["max_cut_area_error"]),
+            )  # fmt: skip
             per.append({**{b: v for b, v in cen.items() if b not in cut}, **fits})
             per_cut.append(set(fits))
             missing[t] = cut - {0} - set(fits)
