@@ -170,11 +170,12 @@ ANCHOR_DEFAULTS: dict = {
     # one from the sphere fitted to its visible outlines in both views at once
     # (sphere_centres) when at least this fraction of each view's circle is inside the
     # frame and each outline's rms distance to its circle is at most max_sphere_rms of
-    # the circle's radius; min_visible_sphere above 1: never. The sphere is fitted where
-    # most of the bubble is inside and moved onto the other frames' arcs by translation,
-    # so that a sliver of 5 % keeps the whole bubble's radius (on the bench's leaving
-    # bubbles, such centres 5-15 % inside were within 0.07 r_eq of the truth).
-    "min_visible_sphere": 0.05,
+    # the circle's radius; min_visible_sphere above 1: never. Below 0.15 the centres
+    # stay close (on the bench's leaving bubbles, 5-15 % inside: within 0.07 r_eq), but
+    # the visible cap moves with the bubble's shape modes as well as its centre, and a
+    # track's velocity from those frames is worse (0.05 took 4 of 64 sessions' velocity
+    # error up by a fifth or more).
+    "min_visible_sphere": 0.15,
     "max_sphere_rms": 0.08,
     # Where the other view has the bubble's centre and area, the sphere lies on that
     # centre's ray with that size and only its depth is fitted; where neither has one,
