@@ -460,10 +460,10 @@ def cut_centres(
         if ell is None or max(ell[2:4]) > float(max_aspect) * min(ell[2:4]):
             continue
         area = float(np.pi * ell[2] * ell[3])
+        if vis[1] < float(min_visible) * area:
+            continue
         inside = ellipse_area_inside(ell, lab.shape)
-        if vis[1] >= float(min_visible) * area and abs(inside - vis[1]) <= float(
-            max_area_error
-        ) * vis[1]:
+        if abs(inside - vis[1]) <= float(max_area_error) * vis[1]:
             out[b] = (ell[0], ell[1], area)
     return out
 

@@ -173,7 +173,7 @@ ANCHOR_DEFAULTS: dict = {
     # the circle's radius; min_visible_sphere above 1: never. Below 0.15 the centres
     # stay close (on the bench's leaving bubbles, 5-15 % inside: within 0.07 r_eq), but
     # the visible cap moves with the bubble's shape modes as well as its centre, and a
-    # track's velocity from those frames is worse (0.05 took 4 of 64 sessions' velocity
+    # track's velocity from those frames is worse (0.05 took 3 of 64 sessions' velocity
     # error up by a fifth or more).
     "min_visible_sphere": 0.15,
     "max_sphere_rms": 0.08,
