@@ -49,7 +49,9 @@ def _fit_cmd(ingest, masks, out, cfg, ckpt):
 def test_killed_fit_resumes_to_the_same_result(toy, tmp_path):
     ingest, masks = toy
     cfg = tmp_path / "config.yaml"
-    params = {**SMALL, "iters_first": 20, "iters_next": 6, "frames": 3, "densify_every": 5}
+    # 30 steps a frame (about 1 s here): the kill, 50 ms after frame 1's record appears,
+    # lands well before frame 2's state (with 6 steps, 0.1 s, it once came after it).
+    params = {**SMALL, "iters_first": 20, "iters_next": 30, "frames": 3, "densify_every": 5}
     cfg.write_text(json.dumps({"fit": params}))  # JSON is YAML
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     ref, ref_ckpt = tmp_path / "ref", tmp_path / "ref.ckpt"
