@@ -475,20 +475,28 @@ def ellipse_area_inside(
     inside an image of ``shape`` (H, W), whose pixels span [−0.5, W − 0.5] ×
     [−0.5, H − 0.5]: counted on a grid of ``step`` pixels (error about the perimeter ×
     ``step`` / 6)."""
-    u, v, a, b, ang = ellipse
+    u, v, a, b, _ = ellipse
     h, w = shape
     reach = max(a, b)
     x0, x1 = max(-0.5, u - reach), min(w - 0.5, u + reach)
     y0, y1 = max(-0.5, v - reach), min(h - 0.5, v + reach)
     if x1 <= x0 or y1 <= y0:
         return 0.0
-    xs = np.arange(x0 + step / 2, x1, step) - u
-    ys = np.arange(y0 + step / 2, y1, step) - v
+    uu, vv = np.meshgrid(np.arange(x0 + step / 2, x1, step), np.arange(y0 + step / 2, y1, step))
+    return float(inside_ellipse(uu, vv, ellipse).sum() * step * step)
+
+
+def inside_ellipse(
+    u: np.ndarray, v: np.ndarray, e: tuple[float, float, float, float, float]
+) -> np.ndarray:
+    """Whether the points (u, v) (pixels, any matching shapes) are inside the ellipse
+    ``e`` = ``(u, v, a, b, angle)`` (:func:`outline_ellipse`)."""
+    cu, cv, a, b, ang = e
     t = np.radians(ang)
-    X, Y = np.meshgrid(xs, ys)
-    p = (X * np.cos(t) + Y * np.sin(t)) / a
-    q = (-X * np.sin(t) + Y * np.cos(t)) / b
-    return float((p * p + q * q <= 1.0).sum() * step * step)
+    du, dv = u - cu, v - cv
+    x = du * np.cos(t) + dv * np.sin(t)  # along the first axis (cv2's width)
+    y = -du * np.sin(t) + dv * np.cos(t)
+    return (x / a) ** 2 + (y / b) ** 2 <= 1.0
 
 
 def outline_ellipse(points: np.ndarray) -> tuple[float, float, float, float, float] | None:

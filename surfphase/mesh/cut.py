@@ -35,6 +35,7 @@ from surfphase.masks.anchors import (
     _MIN_OUTLINE_POINTS,
     border_ids,
     circle_fit,
+    inside_ellipse,
     nearest_whole,
     outline_ellipse,
     shape_centre,
@@ -244,16 +245,6 @@ def fit_circle(points: np.ndarray) -> tuple[float, float, float, float] | None:
     if not res.success or not np.isfinite(res.x).all() or res.x[2] <= 0:
         return None
     return float(res.x[0]), float(res.x[1]), float(res.x[2]), float(np.sqrt(np.mean(res.fun**2)))
-
-
-def inside_ellipse(u: np.ndarray, v: np.ndarray, e: Ellipse) -> np.ndarray:
-    """Whether the points (u, v) (pixels, any matching shapes) are inside ``e``."""
-    cu, cv, a, b, ang = e
-    t = np.radians(ang)
-    du, dv = u - cu, v - cv
-    x = du * np.cos(t) + dv * np.sin(t)  # along the first axis (cv2's width)
-    y = -du * np.sin(t) + dv * np.cos(t)
-    return (x / a) ** 2 + (y / b) ** 2 <= 1.0
 
 
 def completed_view(
