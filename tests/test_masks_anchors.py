@@ -98,6 +98,26 @@ def test_anchor_table_triangulates_and_checks_agreement():
     assert anchor_table([c0, c1], [[cents[0]], [{0: cents[1][1]}]], np.array([5])).empty
 
 
+def test_the_views_agreement_limit_grows_with_the_bubble():
+    """A centroid 3 px off its epipolar line puts the triangulated centre about 1.5 px
+    from both: outside the 1 px floor, inside 0.15 of a 20 px radius, outside 0.15 of
+    a 7 px one (a deformed bubble's centroid strays by a share of its size)."""
+    c0, c1 = _rig()
+    X = np.array([0.0011, 0.0052, -0.0007])
+    for r_px, agree in ((20.0, True), (7.0, False)):
+        cents = []
+        for cam in (c0, c1):
+            uv = cam.project(X[None], distort=False)[0]
+            cents.append({1: (uv[0], uv[1], np.pi * r_px**2)})
+        cents[1][1] = (cents[1][1][0], cents[1][1][1] + 3.0, cents[1][1][2])
+        row = anchor_table([c0, c1], [[cents[0]], [cents[1]]], np.array([0])).iloc[0]
+        assert 1.2 < row["reproj_px"] < 1.8
+        assert bool(row["consistent"]) is agree
+        assert bool(anchor_table(
+            [c0, c1], [[cents[0]], [cents[1]]], np.array([0]), {"max_reproj_r": 0.0}
+        )["consistent"][0]) is False
+
+
 def test_downsample_labels_is_the_block_majority():
     rng = np.random.default_rng(0)
     lab = np.full((40, 60), -1)

@@ -198,10 +198,11 @@ def apparent_size(cam: Camera, X: np.ndarray, area_px: float) -> float:
 
 def pair_agreement(
     cameras: Sequence[Camera], a: tuple[float, float, float], b: tuple[float, float, float]
-) -> tuple[np.ndarray, float, float]:
+) -> tuple[np.ndarray, float, float, float]:
     """The triangulated centre X (3,) m of one bubble's two silhouette entries ``(u, v,
     area)`` (pixels, pixels²) in the two views, the larger reprojection error of the two
-    centres (pixels) and the ratio of the two apparent sizes at X (≥ 1)."""
+    centres (pixels), the ratio of the two apparent sizes at X (≥ 1) and the two
+    silhouettes' mean equivalent radius ``sqrt(area / π)`` (pixels)."""
     ca, cb = cameras[0], cameras[1]
     ua, ub = np.array([a[:2]], np.float64), np.array([b[:2]], np.float64)
     X = triangulate([ca, cb], [ua, ub])[0]
@@ -210,7 +211,18 @@ def pair_agreement(
         float(np.linalg.norm(cb.project(X[None])[0] - ub[0])),
     )
     sa, sb = apparent_size(ca, X, a[2]), apparent_size(cb, X, b[2])
-    return X, rep, max(sa, sb) / max(min(sa, sb), 1e-12)
+    r_px = 0.5 * (np.sqrt(max(a[2], 0.0) / np.pi) + np.sqrt(max(b[2], 0.0) / np.pi))
+    return X, rep, max(sa, sb) / max(min(sa, sb), 1e-12), float(r_px)
+
+
+def views_agree(rep: float, ratio: float, r_px: float, params: Mapping) -> bool:
+    """Whether two views agree on a bubble (:func:`pair_agreement`'s reprojection error
+    ``rep`` and mean equivalent radius ``r_px``, pixels, and size ratio ``ratio``): the
+    error within ``max_reproj_px`` or ``max_reproj_r`` of the radius, whichever is
+    larger, and the ratio within ``max_size_ratio`` (``params``: :data:`ANCHOR_DEFAULTS`'
+    keys)."""
+    limit = max(float(params["max_reproj_px"]), float(params["max_reproj_r"]) * r_px)
+    return rep <= limit and ratio <= float(params["max_size_ratio"])
 
 
 def anchor_table(
@@ -237,7 +249,8 @@ def anchor_table(
         the two centres (pixels), the ratio of the two apparent sizes (≥ 1), their mean
         (``r_m``, m: :func:`apparent_size`, the whole silhouette's where fitted), whether
         either view's centre came from an outline fit (``cut``) and whether both are
-        within the limits. Fitted and measured centres pass the same test.
+        within the limits (:func:`views_agree`). Fitted and measured centres pass the
+        same test.
     """
     p = {**ANCHOR_DEFAULTS, **(params or {})}
     ca, cb = cameras[0], cameras[1]
@@ -248,8 +261,8 @@ def anchor_table(
         for bid in sorted(set(a) & set(b)):
             if bid < 1:
                 continue
-            X, rep, ratio = pair_agreement((ca, cb), a[bid], b[bid])
-            ok = rep <= float(p["max_reproj_px"]) and ratio <= float(p["max_size_ratio"])
+            X, rep, ratio, r_px = pair_agreement((ca, cb), a[bid], b[bid])
+            ok = views_agree(rep, ratio, r_px, p)
             r_m = 0.5 * (apparent_size(ca, X, a[bid][2]) + apparent_size(cb, X, b[bid][2]))
             rows.append(
                 (int(f), int(bid), *map(float, X), rep, ratio, r_m, bid in fitted, bool(ok))

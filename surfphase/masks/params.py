@@ -136,6 +136,12 @@ ANCHOR_DEFAULTS: dict = {
     # Two views agree on a bubble when its triangulated centre reprojects within this
     # many pixels of both silhouette centroids ...
     "max_reproj_px": 1.0,
+    # ... or within this fraction of the silhouettes' mean equivalent radius (pixels),
+    # whichever is larger: a deformed bubble's silhouette centroid is off its centre's
+    # projection by a share of its size (true pairs over the eight benchmark draws: up
+    # to 0.11 of the radius, 1.4 px on a 13.5 px bubble; the pairs of two different
+    # things there: 0.18-1.0 where over 1 px) ...
+    "max_reproj_r": 0.15,
     # ... and the sizes its two silhouettes give at that centre (equivalent radius ×
     # distance / focal length) differ by at most this factor.
     "max_size_ratio": 1.3,

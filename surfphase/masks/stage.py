@@ -334,7 +334,7 @@ def occluded_centres(
 
     In a frame, a bubble with a whole silhouette in one view whose entry in the other
     view is missing or disagrees with it (:func:`surfphase.masks.anchors.pair_agreement`
-    beyond ``max_reproj_px`` or ``max_size_ratio``) is hidden there in the silhouette
+    beyond the limits of :func:`surfphase.masks.anchors.views_agree`) is hidden there in the silhouette
     its ray crosses (its own piece aside) (:func:`_fused_hosts`). Bubbles whose whole
     silhouettes touch in the other view and not in the first (:func:`_touching_groups`)
     may be one in front of another there too, split into two silhouettes. That
@@ -410,8 +410,8 @@ def _fused_hosts(
     hosts: dict[int, set[int]] = {}
     for b, e in whole.items():
         if b in cents_v and b not in cuts_v:
-            _X, rep, ratio = anchors.pair_agreement((cams[u], cams[v]), e, cents_v[b])
-            if rep <= float(ap["max_reproj_px"]) and ratio <= float(ap["max_size_ratio"]):
+            _X, rep, ratio, r_px = anchors.pair_agreement((cams[u], cams[v]), e, cents_v[b])
+            if anchors.views_agree(rep, ratio, r_px, ap):
                 continue
         hits = _epipolar_hits(cams[u], cams[v], e, lab)
         others = hits - {b}
