@@ -72,7 +72,9 @@ DEFAULTS: dict = {
     # instances.csv), the labels the hull is made from being the fit's: a bubble a few of
     # their pixels across loses volume to them; only a factor within hull_area_limits
     # (otherwise the masks and the hull disagree on more than a size) and only where no
-    # view's border cuts the bubble (surfphase.mesh.surfaces.scale_to_silhouettes).
+    # view's border cuts the bubble (surfphase.mesh.surfaces.scale_to_silhouettes); each
+    # hull of the nucleation region likewise, to the areas of the region's whole pieces
+    # whose centroids fall on its silhouettes (a bubble growing on the plate).
     "hull_native_area": True,
     "hull_area_limits": [0.8, 1.25],
     # ... and each bubble the image border cuts in a view drawn whole beyond the border

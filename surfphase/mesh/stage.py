@@ -128,6 +128,7 @@ class _Session:
     centres: dict[int, dict[int, np.ndarray]] | None = None  # frame → bubble → (3,) m
     cut_rules: dict | None = None  # masks: anchors: rules of the cut silhouettes (complete_cut)
     areas: dict[int, dict[int, list[float]]] | None = None  # frame → bubble → per view px
+    pieces: dict[int, list[np.ndarray]] | None = None  # frame → per view (N, 3) u, v, px
     spheres: dict[int, dict[int, tuple]] | None = None  # frame → bubble → ((3,) m, r m)
 
 
@@ -185,18 +186,19 @@ def _open_session(
         if anchors_tab is not None and "r_m" in anchors_tab.columns:
             spheres = anchor_spheres(anchors_tab)
             hashed.append(Path(masks_dir) / MASKS_ANCHORS)
-    areas = None
+    areas = pieces = None
     if p["surface"] == "hull" and p["hull_native_area"] and masks_dir is not None:
         inst = Path(masks_dir) / MASKS_INSTANCES
         if inst.is_file():
-            areas = silhouette_areas(pd.read_csv(inst), inputs)
+            table = pd.read_csv(inst)
+            areas = silhouette_areas(table, inputs)
+            pieces = nucleation_areas(table, inputs)
             hashed.append(inst)
     key = mesh_key(surfels_path, cam_path, p, dev)
     if hashed:
         key = hashlib.sha256("".join([key, *map(_file_hash, hashed)]).encode()).hexdigest()
-    return _Session(
-        surfels, inputs, session, p, dev, key, picks, masks, centres, cut_rules, areas, spheres
-    )
+    found = (masks, centres, cut_rules, areas, pieces, spheres)
+    return _Session(surfels, inputs, session, p, dev, key, picks, *found)
 
 
 def anchor_spheres(anchors_tab: pd.DataFrame) -> dict[int, dict[int, tuple]]:
@@ -238,6 +240,29 @@ def silhouette_areas(
     both = pd.concat(per_view, axis=1, join="inner")
     for (frame, bubble), vals in both.iterrows():
         out.setdefault(int(frame), {})[int(bubble)] = [float(v) for v in vals]
+    return out
+
+
+def nucleation_areas(instances: pd.DataFrame, cameras: list[Camera]) -> dict[int, list[np.ndarray]]:
+    """``{frame: [per camera (N, 3) centroid column, row and area]}`` (pixels of
+    ``cameras``) of the nucleation region's pieces (id 0) in ``instances.csv`` (areas
+    counted at the recording's native resolution, in the fit frame's pixels), a piece
+    whose box reaches its view's image border left out (its silhouette is cut)."""
+    need = {"frame", "camera", "bubble", "area", "cx", "cy", "x0", "y0", "x1", "y1"}
+    if not need <= set(instances.columns):
+        return {}
+    rows = instances[instances["bubble"] == 0]
+    out: dict[int, list[np.ndarray]] = {}
+    for f in sorted(set(rows["frame"].astype(int))):
+        per_view = []
+        for cam in cameras:
+            g = rows[(rows["frame"] == f) & (rows["camera"] == cam.name)]
+            whole = (
+                (g["x0"] > 0) & (g["y0"] > 0) & (g["x1"] < cam.width - 1)
+                & (g["y1"] < cam.height - 1)
+            )  # fmt: skip
+            per_view.append(g.loc[whole, ["cx", "cy", "area"]].to_numpy(np.float64))
+        out[f] = per_view
     return out
 
 
@@ -436,6 +461,7 @@ def _mesh_positions(s: _Session, positions: list[int], work: Path) -> list[dict]
                 None if s.areas is None else s.areas.get(int(surf["frame"][t])),
                 hidden_parts(s, t, views, labs),
                 spared_ids(s, t),
+                None if s.pieces is None else s.pieces.get(int(surf["frame"][t])),
             )
             vel = bubble_vertex_velocities(
                 verts, vbub, surf["means"][t][a], sb, surf["velocity"][t][a]

@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from surfphase.cameras import Camera, orbit_cameras
-from surfphase.masks.anchors import pair_sphere
+from surfphase.masks.anchors import NUCLEATION_ID, pair_sphere
 from surfphase.mesh.cleanup import clean_mesh, drop_fragments
 from surfphase.mesh.fuse import fuse_depths, marching_cubes_mesh, render_depths, voxel_grid
 from surfphase.mesh.hull import bubble_hull_volume, bubble_pieces, elliptic_hull_distance
@@ -99,6 +99,7 @@ def hull_mesh_frame(
     areas: dict[int, list[float]] | None = None,
     hidden: dict[int, list[np.ndarray | None]] | None = None,
     spared: set[int] | frozenset[int] = frozenset(),
+    pieces: list[np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mesh of one frame's bubbles as their elliptic hulls (``mesh: surface: hull``).
 
@@ -125,8 +126,12 @@ def hull_mesh_frame(
     across loses a part of its volume to their pixels and the hull's slices. A bubble
     with a ``hidden`` entry (id → per view, the (H, W) bool pixels it covers behind
     other bubbles there, or None) has those pixels added to its silhouette in that view,
-    and that view's area left out of the scaling. Returns (V, 3) vertices (m), (F, 3)
-    faces and (V,) each vertex's bubble id.
+    and that view's area left out of the scaling. With ``pieces`` (per view, (N, 3)
+    centroid column, row and native area, pixels, of the nucleation region's whole
+    pieces), each hull of the nucleation region is scaled in the same way to the areas
+    of the pieces whose centroids lie on its silhouette in each view: a bubble growing
+    on the plate is a few pixels across for most of its growth. Returns (V, 3) vertices
+    (m), (F, 3) faces and (V,) each vertex's bubble id.
     """
     views = [c.undistorted() for c in inputs]
     verts, faces, ids, n = [], [], [], 0
@@ -174,6 +179,14 @@ def hull_mesh_frame(
             )  # fmt: skip
             if p["floor_y"] is not None:
                 v[:, 1] = np.maximum(v[:, 1], float(p["floor_y"]))
+        elif len(f) and pieces is not None and b == NUCLEATION_ID:
+            native = [_area_on(m, pc) for m, pc in zip(masks, pieces, strict=False)]
+            if len(native) == len(views) and all(a > 0 for a in native):
+                v = scale_to_silhouettes(
+                    v, f, views, native, v.mean(axis=0), tuple(p["hull_area_limits"])
+                )
+                if p["floor_y"] is not None:
+                    v[:, 1] = np.maximum(v[:, 1], float(p["floor_y"]))
         if len(f):
             verts.append(v)
             faces.append(f + n)
@@ -182,6 +195,18 @@ def hull_mesh_frame(
     if not verts:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
     return np.concatenate(verts), np.concatenate(faces), np.concatenate(ids)
+
+
+def _area_on(mask: np.ndarray, pieces: np.ndarray) -> float:
+    """Summed area (third column) of the ``pieces`` ((N, 3) centroid column, row, area)
+    whose centroids fall on the (H, W) bool ``mask``; 0 where none does."""
+    pc = np.asarray(pieces, np.float64).reshape(-1, 3)
+    h, w = mask.shape
+    col, row = np.rint(pc[:, 0]).astype(int), np.rint(pc[:, 1]).astype(int)
+    ok = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    on = np.zeros(len(pc), bool)
+    on[ok] = mask[row[ok], col[ok]]
+    return float(pc[on, 2].sum())
 
 
 def projected_area(cam: Camera, verts: np.ndarray, faces: np.ndarray) -> float:
