@@ -247,6 +247,12 @@ def fit_circle(points: np.ndarray) -> tuple[float, float, float, float] | None:
     return float(res.x[0]), float(res.x[1]), float(res.x[2]), float(np.sqrt(np.mean(res.fun**2)))
 
 
+#: Inside the frame, a completed shape claims the background pixels at least this many
+#: pixels inside its ellipse (:func:`completed_view`): its outline was fitted to the
+#: mask's half-cover line, so the pixels along it are the mask's own to decide.
+CORE_INSET_PX = 1.0
+
+
 def completed_view(
     camera: Camera, lab: np.ndarray, shapes: Mapping[int, Ellipse]
 ) -> tuple[Camera, np.ndarray]:
@@ -261,7 +267,10 @@ def completed_view(
         ``(camera, labels)``: the camera of the grown grid (the same camera, its image
         grown by a margin ``m`` on every side: :meth:`Camera.cropped` at ``(−m, −m)``)
         and its (H + 2m, W + 2m) labels: ``lab`` inside the frame, the ellipses beyond
-        it (where two overlap, the larger id's). Unchanged when ``shapes`` is empty.
+        it (where two overlap, the larger id's), and inside the frame each ellipse's
+        background pixels a pixel or more inside it (:data:`CORE_INSET_PX`) its own: a
+        backlit bubble's bright core, which the frame cuts open, is a gap in its mask
+        that no hole filling closes. Unchanged when ``shapes`` is empty.
     """
     lab = np.asarray(lab)
     if not shapes:
@@ -276,5 +285,12 @@ def completed_view(
     outside = (uu < 0) | (uu >= w) | (vv < 0) | (vv >= h)
     for b, ell in sorted(shapes.items()):
         grown[outside & inside_ellipse(uu, vv, ell)] = b
-    grown[m : m + h, m : m + w] = lab
+    inner = lab.copy()
+    fu, fv = np.meshgrid(np.arange(w), np.arange(h))
+    for b, (u, v, a, bb, ang) in sorted(shapes.items()):
+        core = (lab == -1) & inside_ellipse(
+            fu, fv, (u, v, a - CORE_INSET_PX, bb - CORE_INSET_PX, ang)
+        )
+        inner[core & (inner == -1)] = b
+    grown[m : m + h, m : m + w] = inner
     return camera.cropped(-m, -m, w + 2 * m, h + 2 * m), grown
