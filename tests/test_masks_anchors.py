@@ -101,7 +101,8 @@ def test_anchor_table_triangulates_and_checks_agreement():
 def test_the_views_agreement_limit_grows_with_the_bubble():
     """A centroid 3 px off its epipolar line puts the triangulated centre about 1.5 px
     from both: outside the 1 px floor, inside 0.15 of a 20 px radius, outside 0.15 of
-    a 7 px one (a deformed bubble's centroid strays by a share of its size)."""
+    a 7 px one (a deformed bubble's centroid strays by a share of its size); a bubble
+    just born of a merge is held to the 1 px."""
     c0, c1 = _rig()
     X = np.array([0.0011, 0.0052, -0.0007])
     for r_px, agree in ((20.0, True), (7.0, False)):
@@ -117,6 +118,9 @@ def test_the_views_agreement_limit_grows_with_the_bubble():
             [c0, c1], [[cents[0]], [cents[1]]], np.array([0]), {"max_reproj_r": 0.0}
         )
         assert not bool(fixed["consistent"][0])
+        # A bubble just born of a merge (two lobes) keeps the 1 px limit.
+        lobes = anchor_table([c0, c1], [[cents[0]], [cents[1]]], np.array([0]), young={0: {1}})
+        assert not bool(lobes["consistent"][0])
 
 
 def test_downsample_labels_is_the_block_majority():

@@ -231,6 +231,7 @@ def anchor_table(
     frames: np.ndarray,
     params: Mapping | None = None,
     cut: Sequence[Sequence[set[int]]] | None = None,
+    young: Mapping[int, set[int]] | None = None,
 ) -> pd.DataFrame:
     """Triangulated centre of every bubble (id ≥ 1) that the first two views both see.
 
@@ -243,6 +244,9 @@ def anchor_table(
         params: overrides of :data:`ANCHOR_DEFAULTS`.
         cut: per view, per frame position, the ids whose entry came from
             :func:`cut_centres` (default: none).
+        young: frame position → ids of bubbles just born of a merge, held to
+            ``max_reproj_px`` alone: two lobes whose silhouettes overlap differently in
+            each view are not one deformed bubble (default: none).
 
     Returns:
         :data:`ANCHOR_COLUMNS`: centre (m, lab frame), the larger reprojection error of
@@ -262,7 +266,8 @@ def anchor_table(
             if bid < 1:
                 continue
             X, rep, ratio, r_px = pair_agreement((ca, cb), a[bid], b[bid])
-            ok = views_agree(rep, ratio, r_px, p)
+            lobes = young is not None and bid in young.get(k, ())
+            ok = views_agree(rep, ratio, 0.0 if lobes else r_px, p)
             r_m = 0.5 * (apparent_size(ca, X, a[bid][2]) + apparent_size(cb, X, b[bid][2]))
             rows.append(
                 (int(f), int(bid), *map(float, X), rep, ratio, r_m, bid in fitted, bool(ok))

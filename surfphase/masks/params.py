@@ -140,7 +140,8 @@ ANCHOR_DEFAULTS: dict = {
     # whichever is larger: a deformed bubble's silhouette centroid is off its centre's
     # projection by a share of its size (true pairs over the eight benchmark draws: up
     # to 0.11 of the radius, 1.4 px on a 13.5 px bubble; the pairs of two different
-    # things there: 0.18-1.0 where over 1 px) ...
+    # things there: 0.18-1.0 where over 1 px); not a bubble just born of a merge (within
+    # lobe_centroid_s of it: two lobes, not one deformed bubble) ...
     "max_reproj_r": 0.15,
     # ... and the sizes its two silhouettes give at that centre (equivalent radius ×
     # distance / focal length) differ by at most this factor.

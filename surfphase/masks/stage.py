@@ -290,7 +290,7 @@ def frame_anchors(
         )
     if float(ap["min_visible_sphere"]) <= 1.0 and len(names) == 2:
         sphere_cut_centres(stacks, labels, backgrounds, cams, cents, cuts, params)
-    table = anchors.anchor_table(cams, cents, frames, ap, cuts)
+    table = anchors.anchor_table(cams, cents, frames, ap, cuts, young)
     table["low"] = anchors.low_bottoms(
         table,
         cams,
