@@ -288,9 +288,8 @@ def completed_view(
     inner = lab.copy()
     fu, fv = np.meshgrid(np.arange(w), np.arange(h))
     for b, (u, v, a, bb, ang) in sorted(shapes.items()):
-        core = (lab == -1) & inside_ellipse(
-            fu, fv, (u, v, a - CORE_INSET_PX, bb - CORE_INSET_PX, ang)
-        )
-        inner[core & (inner == -1)] = b
+        if min(a, bb) > CORE_INSET_PX:
+            inset = (u, v, a - CORE_INSET_PX, bb - CORE_INSET_PX, ang)
+            inner[inside_ellipse(fu, fv, inset) & (inner == -1)] = b
     grown[m : m + h, m : m + w] = inner
     return camera.cropped(-m, -m, w + 2 * m, h + 2 * m), grown
