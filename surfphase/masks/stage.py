@@ -335,9 +335,10 @@ def occluded_centres(
     In a frame, a bubble with a whole silhouette in one view whose entry in the other
     view is missing or disagrees with it (:func:`surfphase.masks.anchors.pair_agreement`
     beyond the limits of :func:`surfphase.masks.anchors.views_agree`) is hidden there in
-    the silhouette its ray crosses (its own piece aside) (:func:`_fused_hosts`). Bubbles whose whole
-    silhouettes touch in the other view and not in the first (:func:`_touching_groups`)
-    may be one in front of another there too, split into two silhouettes. That
+    the silhouette its ray crosses (its own piece aside) (:func:`_fused_hosts`). Bubbles
+    whose whole silhouettes touch in the other view and not in the first
+    (:func:`_touching_groups`) may be one in front of another there too, split into two
+    silhouettes. That
     silhouette, or those touching ones joined, with the pieces of the bubbles hidden in
     it, is fitted by their circles
     (:func:`surfphase.masks.anchors.occluded_centres`), kept where each circle lies on
