@@ -18,6 +18,17 @@ def _whole_ellipse(lab: np.ndarray, b: int):
     return outline_ellipse(visible_outline(m, lab, lab, b, ring_px=0)[0])
 
 
+def _hull_volume(cams, labels, p, b: int) -> float:
+    """Enclosed volume (m³) of bubble ``b``'s hull mesh from two views' labels."""
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame
+
+    v, f, ids = hull_mesh_frame(cams, labels, p)
+    mine = ids == b
+    keep = mine[f].all(axis=1)
+    return abs(signed_volume(v[mine], (np.cumsum(mine) - 1)[f[keep]]))
+
+
 def _cut_at(lab: np.ndarray, x0: int) -> np.ndarray:
     """``lab`` with its first ``x0`` columns cut off."""
     return np.ascontiguousarray(lab[:, x0:])
@@ -104,8 +115,7 @@ def test_a_cut_bubbles_open_core_is_its_own_in_the_completed_view():
     bubble's again and the hull has the volume of the uncut view's within 3 % (the ring
     completed outside the frame only: 30 % short); sphere 5 and the background
     outside the circle are untouched."""
-    from surfphase.mesh.measure import signed_volume
-    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+    from surfphase.mesh.stage import mesh_params
 
     cams = _rig()
     labels = [_sphere_labels(c, SPHERES) for c in cams]
@@ -129,10 +139,7 @@ def test_a_cut_bubbles_open_core_is_its_own_in_the_completed_view():
     bare[m:-m, m:-m] = ring
 
     def volume(cam0, lab0):
-        v, f, ids = hull_mesh_frame([cam0, cams[1]], [lab0, labels[1]], p)
-        mine = ids == 3
-        keep = mine[f].all(axis=1)
-        return abs(signed_volume(v[mine], (np.cumsum(mine) - 1)[f[keep]]))
+        return _hull_volume([cam0, cams[1]], [lab0, labels[1]], p, 3)
 
     ref = volume(cams[0], labels[0])
     assert abs(volume(grown_cam, grown) / ref - 1) < 0.03
@@ -209,8 +216,7 @@ def test_a_cut_bubble_without_a_shape_gets_the_image_of_its_sphere():
     centre's projection, which here is beyond the border); it completes the hull to
     within 4 % of the uncut view's volume. A sphere 30 % too small for the visible part,
     or one already shaped, or a bubble not cut, gets none."""
-    from surfphase.mesh.measure import signed_volume
-    from surfphase.mesh.stage import hull_mesh_frame, mesh_params, sphere_shapes
+    from surfphase.mesh.stage import mesh_params, sphere_shapes
 
     cams = _rig()
     labels = [_sphere_labels(c, SPHERES) for c in cams]
@@ -233,10 +239,7 @@ def test_a_cut_bubble_without_a_shape_gets_the_image_of_its_sphere():
     grown_cam, grown = completed_view(cut_cam, cut_lab, got)
 
     def volume(cam0, lab0):
-        v, f, ids = hull_mesh_frame([cam0, cams[1]], [lab0, labels[1]], p)
-        mine = ids == 3
-        keep = mine[f].all(axis=1)
-        return abs(signed_volume(v[mine], (np.cumsum(mine) - 1)[f[keep]]))
+        return _hull_volume([cam0, cams[1]], [lab0, labels[1]], p, 3)
 
     ref = volume(cams[0], labels[0])
     assert abs(volume(grown_cam, grown) / ref - 1) < 0.04
