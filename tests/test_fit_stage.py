@@ -135,7 +135,8 @@ def test_checkpoint_fingerprint_sees_every_frames_masks_and_the_anchors(tmp_path
 
     ingest, masks = make_toy_session(tmp_path, frames=3, size=40)
     pd.DataFrame(
-        [(t, 1, 0.001 * t, 0.002, 0.0) for t in range(3)], columns=["frame", "bubble", "x", "y", "z"]
+        [(t, 1, 0.001 * t, 0.002, 0.0) for t in range(3)],
+        columns=["frame", "bubble", "x", "y", "z"],
     ).to_csv(masks / "anchors.csv", index=False)
     first = SessionData(ingest, masks).fingerprint()
     assert SessionData(ingest, masks).fingerprint() == first

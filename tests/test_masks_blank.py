@@ -87,8 +87,11 @@ def test_bubbles_the_views_never_agree_on_are_a_warning(scenes, tmp_path):
     # cam1 sees a bubble 1.6 times as large on the same track: paired, never consistent.
     write_ingest(tmp_path / "big", [rising(0.0, 0.005, 0.0, 0.0016)], 4, size=64)
     d = with_cam1(scenes, tmp_path, np.load(tmp_path / "big" / "cam1.npy"))
-    with pytest.warns(UserWarning, match=r"session s01: bubble 1 is seen by cameras cam0 and "
-                      r"cam1 but in no frame do the two views agree.*no bubble will be reported"):
+    with pytest.warns(
+        UserWarning,
+        match=r"session s01: bubble 1 is seen by cameras cam0 and "
+        r"cam1 but in no frame do the two views agree.*no bubble will be reported",
+    ):
         run_mask_stage(d, tmp_path / "masks", {"overlay_frames": 0})
     info = json.loads((tmp_path / "masks" / "masks.json").read_text())
     assert info["anchors"] == 0 and any("agree on their centre" in w for w in info["warnings"])

@@ -108,5 +108,5 @@ def test_a_slow_bubble_whose_bottom_dips_under_the_height_rule_stays_free(tmp_pa
     free = [t for t, b in enumerate(ids["cam0"]) if b is not None and b >= 1]
     assert rest <= free[0] < 11
     assert free == list(range(free[0], n))  # frame 13 included: one bubble throughout
-    assert len(set(ids["cam0"][free[0]:])) == 1
+    assert len(set(ids["cam0"][free[0] :])) == 1
     assert (events["event"] == "detach").sum() == 2

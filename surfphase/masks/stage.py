@@ -285,9 +285,7 @@ def frame_anchors(
     cams = [cameras[c].undistorted() for c in names]
     split: list[tuple[str, int]] = []
     if ap["occlusion"] and len(names) == 2:
-        split = occluded_centres(
-            stacks, labels, backgrounds, cams, cents, cuts, params, related
-        )
+        split = occluded_centres(stacks, labels, backgrounds, cams, cents, cuts, params, related)
     if float(ap["min_visible_sphere"]) <= 1.0 and len(names) == 2:
         sphere_cut_centres(stacks, labels, backgrounds, cams, cents, cuts, params)
     table = anchors.anchor_table(cams, cents, frames, ap, cuts, young)
