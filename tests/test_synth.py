@@ -410,6 +410,42 @@ def test_tilted_bubbles_are_spheroids_off_the_vertical():
     assert all(not np.any(b.mode_amplitudes(0.005)) for b in sphere.by_id.values())
 
 
+def test_bench_drawn_draws_every_setting_within_its_ranges(tmp_path):
+    """``bench-drawn`` draws each session's settings from :data:`DRAWN`'s ranges,
+    deterministic in the seed, with values the bench preset never has; its campaign is
+    written with the drawn frame size and rate."""
+    from surfphase.synth.bubbles import SHAPES
+    from surfphase.synth.campaign import BENCH_SESSIONS, DRAWN, NOISE, bench_specs
+    from surfphase.synth.shadowgraph import BACKLIGHTS
+
+    specs = [x for seed in range(6) for x in bench_specs("bench-drawn", seed)]
+    assert bench_specs("bench-drawn", 2) == bench_specs("bench-drawn", 2)
+    assert bench_specs("bench-drawn", 2) != bench_specs("bench-drawn", 3)
+    for x in specs:
+        assert set(x) == set(BENCH_SESSIONS[0])
+        for k in ("angle", "elevation", "fps", "bubbles", "blur"):
+            assert DRAWN[k][0] <= x[k] <= DRAWN[k][1], (k, x)
+        assert all(DRAWN["size"][0] <= v <= DRAWN["size"][1] and v % 16 == 0 for v in x["size"])
+        lo, hi = x["radius_mm"]
+        assert DRAWN["radius_lo_mm"][0] <= lo < hi <= DRAWN["radius_max_mm"]
+        assert x["shape"] in SHAPES and x["backlight"] in BACKLIGHTS and x["noise"] in NOISE
+        assert (x["bit_depth"], x["container"]) in DRAWN["pairs"]
+    for k in ("angle", "fps", "blur"):
+        assert {x[k] for x in specs} - {x[k] for x in BENCH_SESSIONS}, k
+    assert {x["merge"] for x in specs} == {True, False}
+    assert len({x["size"][0] == x["size"][1] for x in specs}) == 2
+
+    out = tmp_path / "drawn"
+    write_campaign(out, preset="bench-drawn", seed=1, sessions=2, frames=2)
+    info = json.loads((out / "synth.json").read_text())
+    for i, want in enumerate(bench_specs("bench-drawn", 1)[:2]):
+        name = f"session{i + 1:02d}"
+        got = info["sessions"][name]["spec"]
+        assert got["fps"] == want["fps"] and tuple(got["size"]) == tuple(want["size"])
+        masks = np.load(out / name / "gt" / "masks" / "cam0.npy")
+        assert masks.shape == (2, want["size"][1], want["size"][0])
+
+
 @pytest.fixture(scope="module")
 def bench2(tmp_path_factory):
     out = tmp_path_factory.mktemp("synth") / "bench"

@@ -4,10 +4,11 @@ scored against the truth beside the classical two-view baseline.
 Steps (:func:`run_accuracy_bench`):
 
 1. the campaign: ``surfphase synth --preset bench`` (``--preset bench-mixed``: its
-   settings recombined by the seed; or a given campaign), written once;
+   settings recombined by the seed; ``bench-drawn``: settings drawn by the seed from
+   the ranges it spans; or a given campaign), written once;
 2. the workflow on it with the config ``surfphase new-campaign`` writes (the project's
    ``config/config.yaml``) and :data:`BENCH_CONFIG` on top — refinement off, ingest
-   scale 0.5 (the preset's native frames are 192–320 px) — through its ``evaluate``
+   scale 0.5 (the presets' native frames are 208–336 px) — through its ``evaluate``
    stage (:func:`write_run_campaign`, then ``surfphase run``);
 3. the classical baseline at the recordings' native resolution: the session ingested at
    scale 1 with the calibrated cameras, masked with the same ``masks:`` settings, mask
@@ -406,9 +407,9 @@ def run_accuracy_bench(
     preset: str = "bench",
 ) -> dict:
     """The whole benchmark (module docstring); ``preset``: the synth preset written when
-    no ``campaign`` is given (``bench`` or ``bench-mixed``). Returns ``{"rows": [...], "table": str,
-    "smoothing": {...}, "config": {...}, "timings": {...}}``; also written to
-    ``work/accuracy.json`` and ``work/accuracy.md``."""
+    no ``campaign`` is given (``bench``, ``bench-mixed`` or ``bench-drawn``). Returns
+    ``{"rows": [...], "table": str, "smoothing": {...}, "config": {...}, "timings":
+    {...}}``; also written to ``work/accuracy.json`` and ``work/accuracy.md``."""
     work = Path(work).resolve()
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -467,7 +468,7 @@ def _bench_campaign(
     work: Path, campaign, seed: int, sessions, frames, log, preset: str = "bench"
 ) -> Path:
     """The synthetic campaign: ``campaign``, or the ``preset`` (``bench``,
-    ``bench-mixed``) written once into ``work/campaign``."""
+    ``bench-mixed``, ``bench-drawn``) written once into ``work/campaign``."""
     from surfphase.synth.campaign import write_campaign
 
     if campaign is None:

@@ -33,9 +33,10 @@ def register_bench(bench_subparsers) -> None:
     p.add_argument("--frames", type=int, help="frames per session (when generating)")
     p.add_argument("--seed", type=int, default=0, help="synth seed (when generating)")
     p.add_argument(
-        "--preset", default="bench", choices=["bench", "bench-mixed"],
-        help="synth preset (when generating): bench, or bench-mixed (its sessions' settings "
-        "recombined by the seed)",
+        "--preset", default="bench", choices=["bench", "bench-mixed", "bench-drawn"],
+        help="synth preset (when generating): bench, bench-mixed (its sessions' settings "
+        "recombined by the seed) or bench-drawn (settings drawn by the seed from the "
+        "ranges the bench spans)",
     )  # fmt: skip
     p.add_argument(
         "--cores", type=int, default=2,

@@ -14,9 +14,10 @@ def _add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--preset",
         default="demo",
-        choices=["demo", "tiny", "bench", "bench-mixed"],
+        choices=["demo", "tiny", "bench", "bench-mixed", "bench-drawn"],
         help="base settings (bench: the varied sessions of `surfphase bench accuracy`; "
-        "bench-mixed: their settings recombined by the seed)",
+        "bench-mixed: their settings recombined by the seed; bench-drawn: settings drawn "
+        "by the seed from the ranges the bench spans)",
     )
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--sessions", type=int, help="number of capture sessions")

@@ -16,7 +16,8 @@ Layout under ``out`` (paths in the TSVs are relative to the TSV's folder)::
                                        top-level "fps" and "fit_scale"
 
 The ``bench`` preset (:data:`BENCH_SESSIONS`; ``bench-mixed``: their settings recombined
-by the seed, :func:`bench_specs`) differs: one rig per session
+by the seed; ``bench-drawn``: settings drawn by the seed from :data:`DRAWN`'s ranges;
+:func:`bench_specs`) differs: one rig per session
 (``rigNN/calib/``), each session's videos in its own container (``<cam>.mp4``,
 ``<cam>.avi``, ``<cam>.tif``, ``<cam>.cih`` + ``.mraw``; :func:`write_video`), frames of
 its own size (W×H), bit depth, frame rate, backlight, noise and blur, fit scale
@@ -59,7 +60,7 @@ from surfphase.cameras import save_cameras
 from surfphase.io import atomic_path, save_npy
 from surfphase.labformats import write_mraw
 from surfphase.synth import charuco, shadowgraph
-from surfphase.synth.bubbles import BubbleScene
+from surfphase.synth.bubbles import SHAPES, BubbleScene
 from surfphase.synth.groundtruth import bubble_table, frame_truth, mesh_volume, write_ply
 from surfphase.synth.monoclips import write_clip, write_png
 from surfphase.synth.rig import default_rig, eye_height
@@ -152,10 +153,31 @@ PRESETS: dict[str, dict] = {
     },
 }
 PRESETS["bench-mixed"] = dict(PRESETS["bench"])
+PRESETS["bench-drawn"] = dict(PRESETS["bench"])
 #: The presets of varied sessions, one rig each: ``bench`` (:data:`BENCH_SESSIONS` as
-#: they are) and ``bench-mixed`` (their settings recombined by the seed,
+#: they are), ``bench-mixed`` (their settings recombined by the seed) and
+#: ``bench-drawn`` (every setting drawn by the seed from the ranges of :data:`DRAWN`;
 #: :func:`bench_specs`).
-BENCH_PRESETS = ("bench", "bench-mixed")
+BENCH_PRESETS = ("bench", "bench-mixed", "bench-drawn")
+#: The ranges ``bench-drawn`` draws each session's settings from: uniform in ``angle``
+#: and ``elevation`` (degrees, rounded to 0.5), native width and height (px, steps of
+#: 16), ``fps`` log-uniform (rounded to 250), ``bubbles`` (integers), the smaller
+#: detachment radius and the width of the radius range (mm, hi capped at 1.5) and
+#: ``blur`` (px, rounded to 0.05); ``merge`` a coin; one of each ``shape``,
+#: ``backlight``, ``noise`` and (bit depth, container) pair.
+DRAWN: dict = {
+    "angle": (25.0, 60.0),
+    "elevation": (0.0, 10.0),
+    "size": (208, 336),
+    "fps": (1000.0, 10000.0),
+    "bubbles": (3, 5),
+    "radius_lo_mm": (0.3, 0.9),
+    "radius_span_mm": (0.3, 0.7),
+    "radius_max_mm": 1.5,
+    "blur": (0.5, 1.4),
+    "pairs": ((8, "mp4"), (8, "avi"), (8, "tiff"), (8, "png"), (12, "mraw"),
+              (16, "mraw"), (16, "tiff"), (16, "tiff-lzw")),
+}  # fmt: skip
 #: What ``bench-mixed`` recombines: each group of :data:`BENCH_SESSIONS`' keys is
 #: shuffled across the sessions on its own (a container keeps its bit depth: video is
 #: 8 bit).
@@ -238,9 +260,13 @@ def bench_specs(preset: str, seed: int) -> tuple[dict, ...]:
     """The varied sessions' settings: :data:`BENCH_SESSIONS` for ``bench``; for
     ``bench-mixed``, each group of :data:`MIX_GROUPS` permuted across the sessions by
     ``seed`` on its own, so every value stays one the preset has, in combinations it
-    does not (views 25° apart at 10,000 fps, tilted spheroids on a dim backlight...)."""
+    does not (views 25° apart at 10,000 fps, tilted spheroids on a dim backlight...);
+    for ``bench-drawn``, every setting drawn by ``seed`` from :data:`DRAWN`'s ranges
+    (:func:`drawn_spec`): values the other two never have."""
     if preset == "bench":
         return BENCH_SESSIONS
+    if preset == "bench-drawn":
+        return tuple(drawn_spec(seed, i) for i in range(len(BENCH_SESSIONS)))
     if preset != "bench-mixed":
         raise ValueError(f"not a bench preset: {preset!r}; choose from {BENCH_PRESETS}")
     rng = np.random.default_rng([seed, 7331])
@@ -251,6 +277,37 @@ def bench_specs(preset: str, seed: int) -> tuple[dict, ...]:
         for spec, v in zip(specs, values, strict=True):
             spec.update(v)
     return tuple(specs)
+
+
+def drawn_spec(seed: int, index: int) -> dict:
+    """Session ``index``'s settings of ``bench-drawn``, drawn from :data:`DRAWN` by
+    ``(seed, index)`` (the keys of :data:`BENCH_SESSIONS`' entries)."""
+    rng = np.random.default_rng([seed, index, 4242])
+    d = DRAWN
+
+    def uniform(lo_hi, step):
+        return round(float(round(rng.uniform(*lo_hi) / step) * step), 4)
+
+    side = np.arange(d["size"][0], d["size"][1] + 1, 16)
+    lo = uniform(d["radius_lo_mm"], 0.05)
+    hi = min(lo + uniform(d["radius_span_mm"], 0.05), d["radius_max_mm"])
+    fps = float(np.exp(rng.uniform(*np.log(d["fps"]))))
+    bit_depth, container = d["pairs"][int(rng.integers(len(d["pairs"])))]
+    return dict(
+        angle=uniform(d["angle"], 0.5),
+        elevation=uniform(d["elevation"], 0.5),
+        size=(int(rng.choice(side)), int(rng.choice(side))),
+        fps=float(min(max(round(fps / 250.0) * 250.0, d["fps"][0]), d["fps"][1])),
+        bubbles=int(rng.integers(d["bubbles"][0], d["bubbles"][1] + 1)),
+        merge=bool(rng.integers(2)),
+        shape=str(rng.choice(SHAPES)),
+        radius_mm=(round(lo, 2), round(hi, 2)),
+        backlight=str(rng.choice(shadowgraph.BACKLIGHTS)),
+        noise=str(rng.choice(sorted(NOISE))),
+        blur=uniform(d["blur"], 0.05),
+        bit_depth=int(bit_depth),
+        container=str(container),
+    )
 
 
 def session_spec(cfg: dict, index: int, bench: Sequence[dict] = BENCH_SESSIONS) -> dict:
