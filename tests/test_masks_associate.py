@@ -11,6 +11,7 @@ from surfphase.masks.associate import (
     ASSOCIATE_DEFAULTS,
     Tracks,
     associate,
+    free_continuations,
     fundamental_matrix,
     reconcile_merges,
     symmetric_epipolar_distance,
@@ -336,3 +337,46 @@ def test_bubbles_approaching_as_touching_lobes_merge_when_the_approach_speeds_up
         assert all(ids[c][t] == before for t in range(merge_frame)), (c, ids[c])
         assert all(ids[c][t] == merged for t in range(merge_frame, 14)), (c, ids[c])
     assert set(events[events.event == "merge"].frame) == {merge_frame}
+
+
+def test_a_free_bubble_fused_in_the_other_view_does_not_land_on_the_plate():
+    """Hand-drawn labels of two views over 6 frames: bubble A rises 1 px a frame; view
+    cam1 fuses it with bubble B in frames 2–3, so neither view has a partner for it
+    there, and its bottom rests on the plate's image (the on-plate rule attaches it).
+    Paired in frames 0, 1, 4 and 5 at 1.5 mm above the plate, it is free in 2–3 as
+    well. Bubble P sits on the plate (paired at 0) and Q, unpaired in frames 2–3,
+    continues an instance paired 0.05 mm above the plate: both stay attached."""
+    n, size = 6, 64
+    lab = {c: np.full((n, size, size), -1, np.int32) for c in ("cam0", "cam1")}
+    local = {}  # (view, frame, name) -> local index
+    for t in range(n):
+        for c, dx in (("cam0", 0), ("cam1", 4)):
+            shapes = {
+                "A": _disk(size, size, 30 - t, 20 + dx, 5),
+                "P": _disk(size, size, 52, 40 + dx, 5),
+                "Q": _disk(size, size, 50, 8 + dx, 3),
+            }
+            if c == "cam1" and t in (2, 3):
+                shapes["A"] = shapes["A"] | _disk(size, size, 30 - t, 29 + dx, 5)
+            else:
+                shapes["B"] = _disk(size, size, 30 - t, 31 + dx, 4)
+            for k, (name, m) in enumerate(sorted(shapes.items())):
+                lab[c][t][m & (lab[c][t] < 0)] = k
+                local[c, t, name] = k
+    rows, names = [], []
+    for t in range(n):
+        for name in ["P"] if t in (2, 3) else ["A", "B", "P", "Q"]:
+            rows.append((t, local["cam0", t, name], local["cam1", t, name], 0.1))
+            names.append(name)
+    pairs = pd.DataFrame(rows, columns=["frame", "local_a", "local_b", "cost"])
+    attached = {(c, t, local[c, t, nm]) for c in lab for t in range(n) for nm in "PQ"}
+    attached |= {(c, t, local[c, t, "A"]) for c in lab for t in (2, 3)}
+
+    def freed(height_a):
+        h = {"A": height_a, "B": 2.0e-3, "P": 0.0, "Q": 0.05e-3}
+        heights = np.array([h[nm] for nm in names])
+        return free_continuations(lab, pairs, heights, attached, "cam0", "cam1", ASSOCIATE_DEFAULTS)
+
+    assert freed(1.5e-3) == {(c, t, local[c, t, "A"]) for c in lab for t in (2, 3)}
+    # A attached where paired stays so in cam0; cam1's fused blob continues B, free.
+    assert freed(0.05e-3) == {("cam1", t, local["cam1", t, "A"]) for t in (2, 3)}

@@ -281,6 +281,73 @@ def _attached_pairs(
     return out
 
 
+def free_continuations(
+    labels: Mapping[str, np.ndarray],
+    pairs: pd.DataFrame,
+    heights: np.ndarray,
+    attached: set[tuple[str, int, int]],
+    cam_a: str,
+    cam_b: str,
+    params: Mapping,
+) -> set[tuple[str, int, int]]:
+    """The attached instances that are a free bubble hidden or fused in the other view.
+
+    An instance the other view has no partner for is called attached when its bottom
+    rests on the plate's image (:func:`_attached_pairs`). A free bubble just above the
+    plate can rest there too (a view from above sees the plate's top behind it) while
+    the other view fuses it with a neighbour. Such an unpaired instance is free when it
+    continues, in its own view, a free instance of the frame before or after: one
+    paired across the views whose bottom triangulates at least ``nucleation_height``
+    above the plate, or one freed so; continues = mask IoU at least ``track_iou_min``.
+    A bubble does not land back on the plate in the frames it is hidden.
+
+    Args:
+        labels: ``{camera: (T, H, W) int}`` instance labels (−1 background).
+        pairs: the :func:`pair_views` table of ``cam_a``, ``cam_b``.
+        heights: (P,) the pairs' :func:`bottom_heights` (m).
+        attached: (camera, frame, local) of the attached instances.
+        params: ``nucleation_height`` (m) and ``track_iou_min``.
+
+    Returns:
+        The instances of ``attached`` to free.
+    """
+    low = float(params["nucleation_height"])
+    paired: set[tuple[str, int, int]] = set()
+    free: set[tuple[str, int, int]] = set()
+    for (t, la, lb), h in zip(
+        pairs[["frame", "local_a", "local_b"]].itertuples(index=False), heights, strict=True
+    ):
+        paired |= {(cam_a, int(t), int(la)), (cam_b, int(t), int(lb))}
+        if h >= low:
+            free |= {(cam_a, int(t), int(la)), (cam_b, int(t), int(lb))}
+    hidden = sorted(k for k in attached if k not in paired)
+    freed: set[tuple[str, int, int]] = set()
+    changed = True
+    while changed:
+        changed = False
+        for cam, t, loc in hidden:
+            key = (cam, t, loc)
+            if key in freed:
+                continue
+            lab = labels[cam]
+            mask = np.asarray(lab[t]) == loc
+            for u in (t - 1, t + 1):
+                if not 0 <= u < lab.shape[0]:
+                    continue
+                other = np.asarray(lab[u])
+                for j in np.unique(other[mask]):
+                    if j < 0 or (cam, u, int(j)) not in free | freed:
+                        continue
+                    m2 = other == j
+                    if (mask & m2).sum() >= params["track_iou_min"] * (mask | m2).sum():
+                        freed.add(key)
+                        changed = True
+                        break
+                if key in freed:
+                    break
+    return freed
+
+
 def associate(
     labels: Mapping[str, np.ndarray],
     scores: Mapping[str, Sequence[np.ndarray]],
@@ -328,6 +395,8 @@ def associate(
         if cam_pair is not None:
             hts = bottom_heights(inst, pairs, a, b, cam_pair)
         attached = _attached_pairs(inst, pairs, a, b, cam_pair, height, p, plates, hts)
+        if cam_pair is not None:
+            attached -= free_continuations(labels, pairs, hts, attached, a, b, p)
     tracks = _track_views(labels, inst, names, attached, p)
     if cam_pair is not None and attached:
         keys = detach.pair_keys(pairs, names[0], names[1])
