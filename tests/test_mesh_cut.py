@@ -243,3 +243,31 @@ def test_a_cut_bubble_without_a_shape_gets_the_image_of_its_sphere():
 
     ref = volume(cams[0], labels[0])
     assert abs(volume(grown_cam, grown) / ref - 1) < 0.04
+
+
+def test_an_oblate_bubble_cut_at_the_top_takes_its_sphere_before_a_fitted_circle():
+    """An oblate silhouette (semi-axes 24 px across, 15 px up) with its top 40 % cut off
+    by the frame and no whole shape in its track: the circle fitted to its visible
+    (lower) arc is too large and centred above the bubble (the bottom's radius of
+    curvature is a²/b), so the completed silhouette is over 1.5 times the ellipse's
+    area (2.1 here); given the image of its sphere (the true centre, the equal-area
+    radius √(ab)), that circle is taken, and the completed silhouette has the ellipse's
+    area within 10 % (inside the frame it keeps the ellipse's wider visible part)."""
+    a, b = 24.0, 15.0
+    vv, uu = np.mgrid[0:80, 0:90]
+    whole = np.where(((uu - 45.0) / a) ** 2 + ((vv - 30.0) / b) ** 2 <= 1, 2, -1)
+    row0 = int(np.ceil(30.0 - b + 0.4 * 2 * b))  # the frame's top border
+    lab = np.ascontiguousarray(whole[row0:]).astype(np.int32)
+    uc, vc = 45.0, 30.0 - row0
+    labels = lab[None]
+    rules = dict(ANCHOR_DEFAULTS)
+    r = float(np.sqrt(a * b))
+    sphere = {2: (uc, vc, r, r, 0.0)}
+    fitted = cut_shapes(labels, 0, rules, circles=True)
+    taken = cut_shapes(labels, 0, rules, circles=True, spheres=sphere)
+    assert taken == sphere
+    assert fitted[2][2] > a and fitted[2][1] < vc - 1.0
+    cam = _rig()[0].cropped(0, 0, lab.shape[1], lab.shape[0])
+    for shape, lo, hi in ((fitted, 1.5, 9.0), (taken, 0.95, 1.10)):
+        _, grown = completed_view(cam, lab, shape)
+        assert lo < (grown == 2).sum() / (np.pi * a * b) < hi

@@ -8,8 +8,9 @@ stage takes from the whole silhouette's ellipse, :mod:`surfphase.masks.anchors`)
 sits off the bubble's surface. Here each such silhouette is drawn whole on a label image
 grown by a margin beyond the frame: as the shape the same view shows whole in the
 nearest frame of the bubble's track, moved onto the visible outline (as the mask stage's
-``tracked_cut_centres``), else, with ``circles``, as the circle fitted to the visible
-outline; either only when at least ``min_visible_tracked`` of it is inside the frame,
+``tracked_cut_centres``), else as the image of the sphere the mask stage gave it (its
+reported centre and size, :func:`surfphase.mesh.stage.sphere_shapes`), else, with
+``circles``, as the circle fitted to the visible outline; either only when at least ``min_visible_tracked`` of it is inside the frame,
 the visible part fits inside it and the outline fits it within ``max_shape_rms`` of its
 radius (``masks: anchors:``); with ``tracked_circles``, one less inside as the circle of
 the radius its track's nearest frame gave it so, placed on its visible outline. The
@@ -79,6 +80,7 @@ def cut_shapes(
     cache: dict | None = None,
     circles: bool = False,
     tracked_circles: bool = False,
+    spheres: Mapping[int, Ellipse] | None = None,
 ) -> dict[int, Ellipse]:
     """The whole silhouette of every region (id ≥ 1) the border cuts in frame ``t``.
 
@@ -96,6 +98,9 @@ def cut_shapes(
             ``min_visible_tracked`` gets the circle of the radius its track's nearest
             frame gave it that way, placed on its visible outline (a centre fitted to a
             short arc of known radius; ``mesh: complete_cut_tracked_circles``).
+        spheres: ``{id: circle}`` of regions whose track shows no whole shape that take
+            this circle before any fitted one (the image of the mask stage's sphere,
+            ``mesh: complete_cut_spheres``).
 
     Returns:
         ``{id: ellipse}``: the shape of each cut region that gets one.
@@ -130,6 +135,8 @@ def cut_shapes(
             and lo * ellipse_area(ref) <= area <= ellipse_area(ref)
         ):
             out[b] = (fit[0], fit[1], ref[2], ref[3], ref[4])
+        if b not in out and spheres and b in spheres:
+            out[b] = spheres[b]
         if b not in out and circles:
             c = fit_circle(pts)
             if _circle_holds(c, area, lo, rms_max):

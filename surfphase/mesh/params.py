@@ -89,10 +89,10 @@ DEFAULTS: dict = {
     # ... and one less of which is inside than min_visible_tracked, the circle of the
     # radius its track's nearest frame gave it so, placed on its visible outline.
     "complete_cut_tracked_circles": True,
-    # ... and one still without a shape, the image of the sphere the mask stage fitted
-    # to it (anchors.csv: its centre x, y, z and radius r_m in the frame; a bubble never
-    # seen whole has its centre from its outlines in both views), where its visible
-    # part fits inside that circle.
+    # ... and one whose track shows no whole shape, before any fitted circle, the image
+    # of the sphere the mask stage fitted to it (anchors.csv: its centre x, y, z and
+    # radius r_m in the frame; a bubble never seen whole has its centre from its
+    # outlines in both views), where its visible part fits inside that circle.
     "complete_cut_spheres": True,
     "frames": None,  # positions (0-based) in surfels.npz; None = all
 }

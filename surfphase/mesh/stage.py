@@ -279,8 +279,9 @@ def masks_anchor_rules(masks_dir: Path) -> dict:
 def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], list[np.ndarray]]:
     """The input cameras and (H, W) labels the hull of position ``t`` is made from: with
     ``complete_cut``, each view's silhouettes the border cuts drawn whole beyond it, on a
-    grown grid (:mod:`surfphase.mesh.cut`; with ``complete_cut_spheres`` those without
-    a shape of their own as the image of the mask stage's sphere, :func:`sphere_shapes`);
+    grown grid (:mod:`surfphase.mesh.cut`; with ``complete_cut_spheres`` those whose
+    track shows no whole shape as the image of the mask stage's sphere,
+    :func:`sphere_shapes`, before any fitted circle);
     ``cache``: per view, its whole shapes."""
     labels = [np.asarray(m[t]) for m in s.masks]
     if s.cut_rules is None:
@@ -288,9 +289,12 @@ def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], l
     spheres = s.spheres.get(int(s.surfels["frame"][t]), {}) if s.spheres else {}
     views = []
     for cam, lab, m, c in zip(s.inputs, labels, s.masks, cache, strict=True):
+        # The mask stage's sphere comes before a circle fitted to the visible arc (of an
+        # oblate bubble's lower arc: too large, its centre beyond the bubble's).
+        sph = sphere_shapes(cam.undistorted(), lab, spheres, set())
         shapes = cut_shapes(
             m, t, s.cut_rules, c, bool(s.p["complete_cut_circles"]),
-            bool(s.p["complete_cut_tracked_circles"]),
+            bool(s.p["complete_cut_tracked_circles"]), sph,
         )  # fmt: skip
         shapes.update(sphere_shapes(cam.undistorted(), lab, spheres, set(shapes)))
         views.append(completed_view(cam, lab, shapes))
