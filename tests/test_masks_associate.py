@@ -340,43 +340,64 @@ def test_bubbles_approaching_as_touching_lobes_merge_when_the_approach_speeds_up
 
 
 def test_a_free_bubble_fused_in_the_other_view_does_not_land_on_the_plate():
-    """Hand-drawn labels of two views over 6 frames: bubble A rises 1 px a frame; view
-    cam1 fuses it with bubble B in frames 2–3, so neither view has a partner for it
-    there, and its bottom rests on the plate's image (the on-plate rule attaches it).
-    Paired in frames 0, 1, 4 and 5 at 1.5 mm above the plate, it is free in 2–3 as
-    well. Bubble P sits on the plate (paired at 0) and Q, unpaired in frames 2–3,
-    continues an instance paired 0.05 mm above the plate: both stay attached."""
-    n, size = 6, 64
-    lab = {c: np.full((n, size, size), -1, np.int32) for c in ("cam0", "cam1")}
-    local = {}  # (view, frame, name) -> local index
+    """Spheres seen by the two-view rig over 6 frames, labels from their projections:
+    A (0.5 mm) rises 0.12 mm a frame, its bottom 1.5 mm above the plate; B is 3 mm
+    behind it along cam1's ray, so cam1 shows the two as one silhouette, made one
+    instance there in frames 2–3. There neither view has a partner for A; call it
+    attached (as the on-plate rule would). Paired in frames 0, 1, 4 and 5, where the
+    views agree on it, A is free in 2–3 as well, and so is cam1's fused instance, which
+    continues A and B. Specks S, one per view, paired by chance about 0.7 mm above the plate
+    in frame 1 (centres and sizes that are no one sphere's) free nothing: S's unpaired
+    continuation stays attached. With A paired on the plate, cam0's A stays attached."""
+    from test_masks_scene import draw_view
+
+    from surfphase.masks.associate import bottom_heights, instance_table
+
+    cams = rig(128)
+    c0, c1 = cams["cam0"], cams["cam1"]
+    ray1 = c1.view_dir / np.linalg.norm(c1.view_dir)
+    a0 = np.array([0.0, 2.0e-3, 0.0])
+
+    def spheres(t):
+        a = a0 + [0.0, 1.2e-4 * t, 0.0]
+        return {"A": (a, 0.5e-3), "B": (a + 3e-3 * ray1, 0.5e-3)}
+
+    n, size = 6, 128
+    lab = {c: np.full((n, size, size), -1, np.int32) for c in cams}
+    local: dict = {}
     for t in range(n):
-        for c, dx in (("cam0", 0), ("cam1", 4)):
-            shapes = {
-                "A": _disk(size, size, 30 - t, 20 + dx, 5),
-                "P": _disk(size, size, 52, 40 + dx, 5),
-                "Q": _disk(size, size, 50, 8 + dx, 3),
-            }
-            if c == "cam1" and t in (2, 3):
-                shapes["A"] = shapes["A"] | _disk(size, size, 30 - t, 29 + dx, 5)
-            else:
-                shapes["B"] = _disk(size, size, 30 - t, 31 + dx, 4)
-            for k, (name, m) in enumerate(sorted(shapes.items())):
-                lab[c][t][m & (lab[c][t] < 0)] = k
-                local[c, t, name] = k
-    rows, names = [], []
-    for t in range(n):
-        for name in ["P"] if t in (2, 3) else ["A", "B", "P", "Q"]:
-            rows.append((t, local["cam0", t, name], local["cam1", t, name], 0.1))
-            names.append(name)
+        for c, cam in cams.items():
+            sph = spheres(t)
+            _, truth = draw_view(cam, list(sph.values()), seed=t)
+            names = list(sph)
+            fused = c == "cam1" and t in (2, 3)
+            for k, name in enumerate(names):
+                lab[c][t][truth == k] = 0 if fused else k
+                local[c, t, name] = 0 if fused else k
+            # Specks of different sizes at the images of two points 4 mm apart.
+            pt = np.array([[(-2e-3, 2e-3)[c == "cam1"], 1.5e-3, 0.0]])
+            u, v = np.round(cam.project(pt, distort=False)[0]).astype(int)
+            half = (1, 2)[c == "cam1"]
+            lab[c][t][v - half : v + half + 1, u - half : u + half + 1] = 2
+            local[c, t, "S"] = 2
+    scores = {c: [np.ones(3)] * n for c in cams}
+    inst = pd.concat([instance_table(lab[c], scores[c], c) for c in cams], ignore_index=True)
+    rows = [(t, local["cam0", t, nm], local["cam1", t, nm], 0.1)
+            for t in range(n) for nm in (["A", "B"] if t not in (2, 3) else [])]  # fmt: skip
+    rows.append((1, 2, 2, 0.1))  # the specks, paired by chance
     pairs = pd.DataFrame(rows, columns=["frame", "local_a", "local_b", "cost"])
-    attached = {(c, t, local[c, t, nm]) for c in lab for t in range(n) for nm in "PQ"}
-    attached |= {(c, t, local[c, t, "A"]) for c in lab for t in (2, 3)}
+    heights = bottom_heights(inst, pairs, "cam0", "cam1", (c0, c1))
+    assert heights[-1] > ASSOCIATE_DEFAULTS["nucleation_height"]
+    assert heights[:-1].min() > 1e-3
+    hidden = {("cam0", t, local["cam0", t, "A"]) for t in (2, 3)}
+    hidden |= {("cam1", t, 0) for t in (2, 3)}
+    specks = {(c, t, 2) for c in cams for t in (0, 2)}
 
-    def freed(height_a):
-        h = {"A": height_a, "B": 2.0e-3, "P": 0.0, "Q": 0.05e-3}
-        heights = np.array([h[nm] for nm in names])
-        return free_continuations(lab, pairs, heights, attached, "cam0", "cam1", ASSOCIATE_DEFAULTS)
+    def freed(h):
+        return free_continuations(
+            lab, inst, pairs, h, hidden | specks, (c0, c1), ("cam0", "cam1"), ASSOCIATE_DEFAULTS
+        )
 
-    assert freed(1.5e-3) == {(c, t, local[c, t, "A"]) for c in lab for t in (2, 3)}
-    # A attached where paired stays so in cam0; cam1's fused blob continues B, free.
-    assert freed(0.05e-3) == {("cam1", t, local["cam1", t, "A"]) for t in (2, 3)}
+    assert freed(heights) == hidden
+    on_plate = np.where(np.arange(len(heights)) < len(heights) - 1, 0.0, heights)
+    assert freed(on_plate) == set()

@@ -283,12 +283,14 @@ def _attached_pairs(
 
 def free_continuations(
     labels: Mapping[str, np.ndarray],
+    inst: pd.DataFrame,
     pairs: pd.DataFrame,
     heights: np.ndarray,
     attached: set[tuple[str, int, int]],
-    cam_a: str,
-    cam_b: str,
+    cameras: tuple[Camera, Camera],
+    names: tuple[str, str],
     params: Mapping,
+    agree: Mapping | None = None,
 ) -> set[tuple[str, int, int]]:
     """The attached instances that are a free bubble hidden or fused in the other view.
 
@@ -298,28 +300,47 @@ def free_continuations(
     the other view fuses it with a neighbour. Such an unpaired instance is free when it
     continues, in its own view, a free instance of the frame before or after: one
     paired across the views whose bottom triangulates at least ``nucleation_height``
-    above the plate, or one freed so; continues = mask IoU at least ``track_iou_min``.
-    A bubble does not land back on the plate in the frames it is hidden.
+    above the plate and whose two silhouettes are one bubble's by the mask stage's
+    rule (:func:`surfphase.masks.anchors.views_agree` on their centroids and areas: not
+    two specks of the plate's edge paired by chance), or one freed so; continues = mask
+    IoU at least ``track_iou_min``. A bubble does not land back on the plate in the
+    frames it is hidden.
 
     Args:
         labels: ``{camera: (T, H, W) int}`` instance labels (−1 background).
-        pairs: the :func:`pair_views` table of ``cam_a``, ``cam_b``.
+        inst: the :func:`instance_table` rows of both views.
+        pairs: the :func:`pair_views` table of the views ``names``.
         heights: (P,) the pairs' :func:`bottom_heights` (m).
         attached: (camera, frame, local) of the attached instances.
+        cameras: the two views' undistorted cameras.
+        names: the two views' camera names.
         params: ``nucleation_height`` (m) and ``track_iou_min``.
+        agree: ``masks: anchors:`` settings of :func:`views_agree` (default
+            :data:`~surfphase.masks.params.ANCHOR_DEFAULTS`).
 
     Returns:
         The instances of ``attached`` to free.
     """
+    from surfphase.masks.anchors import pair_agreement, views_agree
+    from surfphase.masks.params import ANCHOR_DEFAULTS
+
+    agree = {**ANCHOR_DEFAULTS, **(agree or {})}
+    cam_a, cam_b = names
     low = float(params["nucleation_height"])
+    geom = inst.set_index(["camera", "frame", "local"])[["cx", "cy", "area"]]
     paired: set[tuple[str, int, int]] = set()
     free: set[tuple[str, int, int]] = set()
     for (t, la, lb), h in zip(
         pairs[["frame", "local_a", "local_b"]].itertuples(index=False), heights, strict=True
     ):
-        paired |= {(cam_a, int(t), int(la)), (cam_b, int(t), int(lb))}
+        ka, kb = (cam_a, int(t), int(la)), (cam_b, int(t), int(lb))
+        paired |= {ka, kb}
         if h >= low:
-            free |= {(cam_a, int(t), int(la)), (cam_b, int(t), int(lb))}
+            _, rep, ratio, r_px = pair_agreement(
+                cameras, tuple(geom.loc[ka].to_numpy(float)), tuple(geom.loc[kb].to_numpy(float))
+            )
+            if views_agree(rep, ratio, r_px, agree):
+                free |= {ka, kb}
     hidden = sorted(k for k in attached if k not in paired)
     freed: set[tuple[str, int, int]] = set()
     changed = True
@@ -355,6 +376,7 @@ def associate(
     params: Mapping | None = None,
     plates: Mapping[str, np.ndarray] | None = None,
     fps: float | None = None,
+    anchor_params: Mapping | None = None,
 ) -> tuple[dict[str, np.ndarray], pd.DataFrame, pd.DataFrame]:
     """Give every instance a bubble id, consistent across views and time.
 
@@ -370,6 +392,8 @@ def associate(
             used for instances that cannot be triangulated.
         fps: the session's frame rate (frames per second), for time settings such as
             ``merge_lobe_s`` (without it they count one frame).
+        anchor_params: ``masks: anchors:`` settings of the views' agreement on a bubble
+            (:func:`free_continuations`; default their defaults).
 
     Returns:
         bubble_labels: ``{camera: (T, H, W) int32}``, −1 background, 0 nucleation
@@ -396,7 +420,9 @@ def associate(
             hts = bottom_heights(inst, pairs, a, b, cam_pair)
         attached = _attached_pairs(inst, pairs, a, b, cam_pair, height, p, plates, hts)
         if cam_pair is not None:
-            attached -= free_continuations(labels, pairs, hts, attached, a, b, p)
+            attached -= free_continuations(
+                labels, inst, pairs, hts, attached, cam_pair, (a, b), p, anchor_params
+            )
     tracks = _track_views(labels, inst, names, attached, p)
     if cam_pair is not None and attached:
         keys = detach.pair_keys(pairs, names[0], names[1])

@@ -937,7 +937,7 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
     labels, scores, bgs, t_seg = _segment_all(stacks, p)
     plates = {name: bg[1] for name, bg in bgs.items()}
     bubble_labels, instances, events = associate(
-        labels, scores, seg.cameras, p["associate"], plates, ingest.fps
+        labels, scores, seg.cameras, p["associate"], plates, ingest.fps, p["anchors"]
     )
     check_bubbles_found(meta, ingest_dir, instances, list(stacks))
     associated = instances.copy()
