@@ -9,15 +9,16 @@ sits off the bubble's surface. Here each such silhouette is drawn whole on a lab
 grown by a margin beyond the frame: as the shape the same view shows whole in the
 nearest frame of the bubble's track, moved onto the visible outline (as the mask stage's
 ``tracked_cut_centres``), else as the image of the sphere the mask stage gave it (its
-reported centre and size, :func:`surfphase.mesh.stage.sphere_shapes`), else, with
-``circles``, as the circle fitted to the visible outline; either only when at least ``min_visible_tracked`` of it is inside the frame,
-the visible part fits inside it and the outline fits it within ``max_shape_rms`` of its
-radius (``masks: anchors:``); with ``tracked_circles``, one less inside as the circle of
-the radius its track's nearest frame gave it so, placed on its visible outline. The
-ellipse fitted to a partial outline, which the mask stage's centres take when 60 % is
-visible, is not used: across the cut its axis is
-poorly constrained (a sphere's silhouette 64 % inside, radius 9.2 px, gave semi-axes of
-7.4 and 9.1 px; the circle 9.5 px). Inside the frame the masks are kept as they are;
+reported centre and size, :func:`surfphase.mesh.stage.sphere_shapes`, where the visible
+part fits inside it), else, with ``circles``, as the circle fitted to the visible
+outline; the shape and the circle only when at least ``min_visible_tracked`` of it is
+inside the frame, the visible part fits inside it and the outline fits it within
+``max_shape_rms`` of its radius (``masks: anchors:``); with ``tracked_circles``, one
+less inside as the circle of the radius its track's nearest frame gave it so, placed on
+its visible outline. The ellipse fitted to a partial outline, which the mask stage's
+centres take when 60 % is visible, is not used: across the cut its axis is poorly
+constrained (a sphere's silhouette 64 % inside, radius 9.2 px, gave semi-axes of 7.4 and
+9.1 px; the circle 9.5 px). Inside the frame the masks are kept as they are;
 only pixels beyond the border are drawn. The outlines are the binary masks' own (pixel
 edges): the mesh stage has labels, not the images.
 

@@ -296,7 +296,7 @@ def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], l
             m, t, s.cut_rules, c, bool(s.p["complete_cut_circles"]),
             bool(s.p["complete_cut_tracked_circles"]), sph,
         )  # fmt: skip
-        shapes.update(sphere_shapes(cam.undistorted(), lab, spheres, set(shapes)))
+        shapes.update({b: e for b, e in sph.items() if b not in shapes})
         views.append(completed_view(cam, lab, shapes))
     return [v[0] for v in views], [v[1] for v in views]
 
