@@ -342,31 +342,31 @@ def free_continuations(
             if views_agree(rep, ratio, r_px, agree):
                 free |= {ka, kb}
     hidden = sorted(k for k in attached if k not in paired)
-    freed: set[tuple[str, int, int]] = set()
-    changed = True
-    while changed:
-        changed = False
-        for cam, t, loc in hidden:
-            key = (cam, t, loc)
-            if key in freed:
+    masks = {k: np.asarray(labels[k[0]][k[1]]) == k[2] for k in hidden}
+    known = set(free)  # free pairs, and the hidden instances freed so far
+
+    def continues_free(key: tuple[str, int, int]) -> bool:
+        cam, t, _ = key
+        lab, mask = labels[cam], masks[key]
+        for u in (t - 1, t + 1):
+            if not 0 <= u < lab.shape[0]:
                 continue
-            lab = labels[cam]
-            mask = np.asarray(lab[t]) == loc
-            for u in (t - 1, t + 1):
-                if not 0 <= u < lab.shape[0]:
-                    continue
-                other = np.asarray(lab[u])
-                for j in np.unique(other[mask]):
-                    if j < 0 or (cam, u, int(j)) not in free | freed:
-                        continue
+            other = np.asarray(lab[u])
+            for j in np.unique(other[mask]):
+                if j >= 0 and (cam, u, int(j)) in known:
                     m2 = other == j
                     if (mask & m2).sum() >= params["track_iou_min"] * (mask | m2).sum():
-                        freed.add(key)
-                        changed = True
-                        break
-                if key in freed:
-                    break
-    return freed
+                        return True
+        return False
+
+    changed = True
+    while changed:  # a chain of hidden frames frees from its free end
+        changed = False
+        for key in hidden:
+            if key not in known and continues_free(key):
+                known.add(key)
+                changed = True
+    return known.intersection(hidden)
 
 
 def associate(
