@@ -55,6 +55,26 @@ def test_coverage_centroid_is_sub_pixel_where_the_binary_one_is_not(u0, v0, r):
     assert area == pytest.approx(np.pi * r * r, rel=0.06)
 
 
+@pytest.mark.parametrize("edge", [22.3, 25.0, 27.6])
+def test_a_bubble_partly_in_front_of_the_plate_weighs_each_part_by_its_own_darkness(edge):
+    """A dark disk whose lower part lies in front of the plate: darkness ∝ cover there
+    too, but relative to the plate's dimmer light, 0.3 instead of 0.8. With the plate's
+    image given, each part's edge has its own reference and the centroid is the disk's
+    (the analytic centre); one reference for the whole edge weighs the part in front of
+    the plate light and lifts the centroid."""
+    u0, v0, r = 30.4, 24.3, 7.0
+    cover = disk_cover(48, 60, u0, v0, r)
+    static = np.arange(48)[:, None] >= np.full((1, 60), int(np.ceil(edge)))
+    contrast = np.where(static, 0.3, 0.8) * cover
+    labels = np.where(cover >= 0.5, 0, -1)
+    u, v, _ = coverage_centroids(contrast, labels, ring_px=1, static=static)[0]
+    assert np.hypot(u - u0, v - v0) < 0.03
+    _, v_one, _ = coverage_centroids(contrast, labels, ring_px=1)[0]
+    assert v_one < v0 - 0.05  # lifted (rows grow downwards)
+    off = coverage_centroids(contrast, labels, ring_px=1, static=np.zeros_like(static))[0]
+    assert off == coverage_centroids(contrast, labels, ring_px=1)[0]
+
+
 def test_coverage_centroids_keep_out_of_a_neighbour():
     a, b = disk_cover(40, 60, 20.2, 20.0, 5.0), disk_cover(40, 60, 32.0, 20.0, 5.0)
     labels = np.full((40, 60), -1)

@@ -13,13 +13,16 @@ from surfphase.masks.params import CLASSICAL_DEFAULTS
 SS = 4  # supersampling of the drawn truth
 
 
-def shadowgraph(h, w, bubbles, seed=0, noise=0.01, plate_row=None, plate_edge=None):
+def shadowgraph(
+    h, w, bubbles, seed=0, noise=0.01, plate_row=None, plate_edge=None, plate_bottom=None
+):
     """Bright uneven backlight, bubbles as dark rings with bright cores.
 
     ``bubbles``: (u, v, r) pixels. With ``plate_row`` a dim static band (the heated
     plate's top face) fills rows ≥ plate_row and a black band the last rows;
     ``plate_edge`` ((w,) rows, fractional) gives the band's top per column instead,
-    area-sampled.
+    area-sampled. With ``plate_bottom`` the plate ends there (its black band the rows
+    above it) and the backlight is seen below it.
     Returns the image (float32) and truth labels (pixel-centre coverage ≥ 1/2).
     """
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -37,7 +40,9 @@ def shadowgraph(h, w, bubbles, seed=0, noise=0.01, plate_row=None, plate_edge=No
         cover = np.clip(yy + 1 - np.asarray(plate_edge)[None, :], 0.0, 1.0)
         img = (1 - cover) * img + cover * 0.26 * bg
     if plate_row is not None or plate_edge is not None:
-        img[h - max(2, h // 16) :] = 0.03
+        end = h if plate_bottom is None else plate_bottom
+        img[end - max(2, h // 16) : end] = 0.03
+        img[end:] = bg[end:]
     truth = np.full((h, w), -1, np.int32)
     off = (np.arange(SS) + 0.5) / SS - 0.5
     oy, ox = np.meshgrid(off, off, indexing="ij")
@@ -167,6 +172,29 @@ def test_bubble_growing_on_the_plate_is_whole():
     # may follow a bubble's dent by up to 3 rows).
     assert static[94:].all() and not static[:91].any()
     for t in (3, 8, 11):
+        labels, _ = classical.segment_frame(stack[t], None, (bg, static))
+        assert labels.max() + 1 == 2
+        assert best_iou(truths[t], labels, 0) > 0.8
+        assert best_iou(truths[t], labels, 1) > 0.9
+
+
+def test_a_plate_seen_with_backlight_below_it_is_the_plate():
+    """A camera level with the plate sees backlight under it too: the plate's band
+    spans the width without reaching the bottom border. It is still the static
+    structure, and a bubble rising in front of its top edge is its own instance, not
+    part of a plate-sized one."""
+    h = w = 128
+    frames, truths = [], []
+    for t in range(12):
+        sites = [(40.0, 84 - 0.5 * t, 6.0), (90, 60 - 3 * t, 8)]
+        img, tr = shadowgraph(h, w, sites, seed=t, plate_row=80, plate_bottom=112)
+        frames.append(img)
+        truths.append(tr)
+    stack = np.stack(frames)
+    ref = classical.session_reference(stack)
+    bg, static = classical.static_background(ref)
+    assert static[80:112].all() and not static[:76].any()
+    for t in (0, 5, 11):
         labels, _ = classical.segment_frame(stack[t], None, (bg, static))
         assert labels.max() + 1 == 2
         assert best_iou(truths[t], labels, 0) > 0.8

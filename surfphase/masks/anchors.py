@@ -48,14 +48,30 @@ def _crop(mask: np.ndarray, pad: int) -> tuple[slice, slice]:
     )
 
 
+#: Fewest edge pixels of a silhouette on one background (plate or backlight) that set
+#: that part's own darkness reference in :func:`_cover_weights`.
+_MIN_PART_EDGE = 3
+
+
 def _cover_weights(
-    mask: np.ndarray, contrast: np.ndarray, own: np.ndarray, ring_px: int
+    mask: np.ndarray,
+    contrast: np.ndarray,
+    own: np.ndarray,
+    ring_px: int,
+    static: np.ndarray | None = None,
 ) -> np.ndarray:
     """Per-pixel cover (0..1) of one region in a crop: 1 inside ``mask`` (bool (h, w)),
     and on its edge and the band of ``ring_px`` pixels about it (where ``own``, the
     pixels nearer to this region than to any other) the relative darkness
     ``contrast`` over the 75th percentile of the mask's edge pixels' darkness, clipped
-    to [0, 1]; the binary mask where ``ring_px`` is 0 or there is no edge contrast."""
+    to [0, 1]; the binary mask where ``ring_px`` is 0 or there is no edge contrast.
+
+    ``static`` ((h, w) bool, the plate's image): a silhouette seen partly in front of
+    the plate has a darkness there relative to the plate, less than against the
+    backlight, so the pixels on the plate and those off it each take the percentile of
+    their own edge pixels (where at least :data:`_MIN_PART_EDGE` of them lie on that
+    background, else the whole edge's): one reference weighed the part in front of the
+    plate light, and the centroid of a bubble rising from it drifted up (0.3–0.5 px)."""
     w = mask.astype(np.float64)
     if ring_px <= 0:
         return w
@@ -64,12 +80,20 @@ def _cover_weights(
     band = ndi.binary_dilation(mask, iterations=int(ring_px)) & ~inner & own
     ref = float(np.percentile(contrast[edge], 75)) if edge.any() else 0.0
     if ref > 1e-3 and inner.any():
-        w = np.where(inner, 1.0, np.where(band, np.clip(contrast / ref, 0.0, 1.0), 0.0))
+        refs = np.full(mask.shape, ref)
+        if static is not None and (edge & static).any():
+            for part in (static, ~static):
+                if (edge & part).sum() >= _MIN_PART_EDGE:
+                    refs[part] = max(float(np.percentile(contrast[edge & part], 75)), 1e-3)
+        w = np.where(inner, 1.0, np.where(band, np.clip(contrast / refs, 0.0, 1.0), 0.0))
     return w
 
 
 def coverage_centroids(
-    contrast: np.ndarray, labels: np.ndarray, ring_px: int = ANCHOR_DEFAULTS["ring_px"]
+    contrast: np.ndarray,
+    labels: np.ndarray,
+    ring_px: int = ANCHOR_DEFAULTS["ring_px"],
+    static: np.ndarray | None = None,
 ) -> dict[int, tuple[float, float, float]]:
     """Sub-pixel centroid of every labelled region of one frame.
 
@@ -86,6 +110,8 @@ def coverage_centroids(
             (:func:`surfphase.masks.classical.relative_contrast`).
         labels: (H, W) int, −1 background, ≥ 0 region ids.
         ring_px: band width, pixels (0: binary centroids).
+        static: (H, W) bool image of the plate, whose edge pixels take their own
+            darkness reference (:func:`_cover_weights`), or ``None``.
 
     Returns:
         ``{id: (u, v, area)}``: centroid in pixels (column, row) and the weighted area
@@ -99,7 +125,8 @@ def coverage_centroids(
     for b in ids:
         m = lab == b
         sl = _crop(m, int(ring_px) + 1)
-        w = _cover_weights(m[sl], c[sl], owner[sl] == b, ring_px)
+        st = None if static is None else np.asarray(static)[sl]
+        w = _cover_weights(m[sl], c[sl], owner[sl] == b, ring_px, st)
         s = float(w.sum())
         vv, uu = np.mgrid[sl]
         out[int(b)] = (float((w * uu).sum() / s), float((w * vv).sum() / s), s)
@@ -1009,6 +1036,7 @@ def lobe_centroids(
     labels: np.ndarray,
     ids: set[int],
     ring_px: int = ANCHOR_DEFAULTS["ring_px"],
+    static: np.ndarray | None = None,
 ) -> dict[int, tuple[float, float, float]]:
     """:func:`coverage_centroids`' entries of the regions ``ids`` with the centroid of
     their solid of revolution (:func:`revolution_centroid`, same cover weights)."""
@@ -1022,7 +1050,8 @@ def lobe_centroids(
     for b in sorted(ids):
         m = lab == b
         sl = _crop(m, int(ring_px) + 1)
-        w = _cover_weights(m[sl], c[sl], owner[sl] == b, ring_px)
+        st = None if static is None else np.asarray(static)[sl]
+        w = _cover_weights(m[sl], c[sl], owner[sl] == b, ring_px, st)
         vv, uu = np.mgrid[sl]
         out[b] = (*revolution_centroid(w, vv, uu), float(w.sum()))
     return out

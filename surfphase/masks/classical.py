@@ -65,13 +65,13 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
 
     On a ≤64×64 area-downsampled copy, object pixels are those more than 20 % darker
     than a grey closing of 30 % of the shorter side (dark things narrower than that:
-    bubbles) or darker than 0.6 × the 95th percentile (the plate); a 2D polynomial of total ``degree`` in normalised
-    pixel coordinates is fitted by least squares to the others. A region failing the
-    second test that does not reach the bottom border (where the plate enters) is
-    then judged against that polynomial instead (darker than 0.6 × it): a vignetted
-    corner is darker than 0.6 × the 95th percentile too, but not than the backlight
-    there, and left out it got the polynomial's extrapolation, up to 29 % too bright
-    (a static "object" in every frame). The polynomial is then refitted without the
+    bubbles) or darker than 0.6 × the 95th percentile (the plate); a 2D polynomial of
+    total ``degree`` in normalised pixel coordinates is fitted by least squares to the
+    others. A region failing the second test that cannot be the plate
+    (:func:`plate_components`) is then judged against that polynomial instead (darker
+    than 0.6 × it): a vignetted corner is darker than 0.6 × the 95th percentile too,
+    but not than the backlight there, and left out it got the polynomial's
+    extrapolation, up to 29 % too bright (a static "object" in every frame). The polynomial is then refitted without the
     pixels that stay clearly (2.5 robust σ and 5 %) below it. Vignetting and uneven
     illumination are smooth and broad, so they are followed, not rejected.
     Returns (H, W) float32.
@@ -99,11 +99,11 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
     if keep.sum() < A.shape[1] * 3:
         keep = np.ones(b.size, bool)
     else:
-        # A dark region away from the bottom border (where the plate enters) is judged
+        # A dark region that cannot be the plate (plate_components) is judged
         # again, against the backlight there rather than the brightest of the image.
         coef = _lstsq(A, b, keep)
         dark, _ = ndi.label(~bright.reshape(sh, sw), np.ones((3, 3)))
-        plate = np.unique(dark[-1][dark[-1] > 0])
+        plate = plate_components(dark)
         again = ((dark > 0) & ~np.isin(dark, plate)).ravel() & narrow
         local = keep = local | (again & (b > DARK_STRUCTURE * (A @ coef)))
     coef = np.zeros(A.shape[1])
@@ -125,6 +125,16 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
             bg += coef[k] * np.outer(yf**j, xf**i)
             k += 1
     return bg.astype(np.float32)
+
+
+def plate_components(comp: np.ndarray) -> np.ndarray:
+    """The labels of (H, W) int ``comp`` (0: none) that can be the plate: a region
+    reaching the bottom border, where the plate enters the view, or spanning the view
+    from its left border to its right (the plate seen from level or below, with
+    backlight under it too). Returns the sorted labels (int array)."""
+    bottom = comp[-1][comp[-1] > 0]
+    left, right = comp[:, 0][comp[:, 0] > 0], comp[:, -1][comp[:, -1] > 0]
+    return np.union1d(np.unique(bottom), np.intersect1d(left, right))
 
 
 def _fill_along_rows(band: np.ndarray, unknown: np.ndarray) -> np.ndarray:
@@ -261,10 +271,10 @@ def static_background(
     at a nucleation site in a good part of the frames.
 
     The backlight is the robust polynomial fit of the reference. A static dark
-    structure entering from the bottom of the view — the heated plate — is the part
-    of the reference darker than ``(1 − static_dark_frac)`` × backlight, connected to
-    the border and larger than ``static_min_area_frac`` of the image. Its upper edge
-    is taken per column and cleaned of the dents of bubbles sitting on it (which stay
+    structure — the heated plate — is the part of the reference darker than
+    ``(1 − static_dark_frac)`` × backlight that can be the plate (reaching the bottom
+    border, or spanning the width: :func:`plate_components`) and larger than
+    ``static_min_area_frac`` of the image. Its upper edge is taken per column and cleaned of the dents of bubbles sitting on it (which stay
     in the reference when nucleation never stops) by :func:`polyline_edge` over
     windows of ``static_notch_frac`` of the width, within ``static_edge_tol_px``.
     Inside the structure (and two rows above its edge, its blurred rim) the
@@ -290,10 +300,9 @@ def static_background(
     comp, n = ndi.label(dark)
     if n == 0:
         return light, static
-    bottom = np.unique(comp[-1])
     sizes = ndi.sum_labels(np.ones_like(comp), comp, np.arange(1, n + 1))
     big = np.flatnonzero(sizes >= p["static_min_area_frac"] * comp.size) + 1
-    keep = np.intersect1d(big, bottom[bottom > 0])
+    keep = np.intersect1d(big, plate_components(comp))
     if keep.size == 0:
         return light, static
     s0 = np.isin(comp, keep)

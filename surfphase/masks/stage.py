@@ -254,9 +254,12 @@ def frame_anchors(
         missing: dict[int, set[int]] = {}
         for t in range(stacks[c].shape[0]):
             con = classical.relative_contrast(stacks[c][t], cp, backgrounds[c])
-            cen = anchors.coverage_centroids(con, labels[c][t], int(ap["ring_px"]))
+            plate = backgrounds[c][1]
+            cen = anchors.coverage_centroids(con, labels[c][t], int(ap["ring_px"]), plate)
             if young and young.get(t):
-                cen.update(anchors.lobe_centroids(con, labels[c][t], young[t], int(ap["ring_px"])))
+                cen.update(
+                    anchors.lobe_centroids(con, labels[c][t], young[t], int(ap["ring_px"]), plate)
+                )
             cut = anchors.border_ids(labels[c][t])  # silhouettes the frame may cut
             fits = anchors.cut_centres(
                 con, labels[c][t], cut - {0}, int(ap["ring_px"]),
