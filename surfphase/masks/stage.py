@@ -367,7 +367,9 @@ def occluded_centres(
             groups = [(host, sorted(hidden | ({host} if host in whole else set())), False)
                       for host, hidden in _fused_hosts(cams, u, v, whole, cents[v][k],
                                                        cuts[v][k], lab, ap).items()]  # fmt: skip
-            taken = set().union(*(g for _, g, _ in groups)) if groups else set()
+            # A bubble alone in its host (its ray crosses its own silhouette only) is
+            # no fused group: it may still touch, in front of or behind, another.
+            taken = set().union(*(g for _, g, _ in groups if len(g) >= 2))
             lab_u = np.asarray(labels[names[u]][k])
             for group in _touching_groups(
                 lab, lab_u, set(whole) - taken, cents[v][k], cuts[v][k], related
