@@ -27,6 +27,7 @@ from scipy import ndimage as ndi
 from skimage.measure import find_contours
 
 from surfphase.cameras import Camera, triangulate
+from surfphase.masks.classical import fill_holes_to_border
 from surfphase.masks.params import ANCHOR_DEFAULTS
 
 #: Fewest outline points an outline fit takes (a conic has 5 degrees of freedom).
@@ -382,18 +383,6 @@ def downsample_labels(labels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def _fill_to_border(mask: np.ndarray, at_border: tuple[bool, bool, bool, bool]) -> np.ndarray:
-    """``mask`` (bool (h, w)) with its holes filled, the crop sides flagged in
-    ``at_border`` (top, bottom, left, right: the image's border) counted as closed: a
-    backlit bubble's bright core that the frame cuts open is filled as well."""
-    pads = [(int(at_border[0]), int(at_border[1])), (int(at_border[2]), int(at_border[3]))]
-    big = np.pad(mask, pads, constant_values=True)
-    filled = ndi.binary_fill_holes(big)
-    return filled[
-        pads[0][0] : filled.shape[0] - pads[0][1], pads[1][0] : filled.shape[1] - pads[1][1]
-    ]
-
-
 def region_owners(lab: np.ndarray, ring_px: int) -> np.ndarray:
     """Each pixel's nearest region id (the labels themselves where ``ring_px`` is 0)."""
     if ring_px <= 0:
@@ -435,7 +424,7 @@ def visible_outline(
         return None
     sl = _crop(m, int(ring_px) + 2)
     y0, y1, x0, x1 = sl[0].start, sl[0].stop, sl[1].start, sl[1].stop
-    mm = _fill_to_border(m[sl], (y0 == 0, y1 == h, x0 == 0, x1 == w))
+    mm = fill_holes_to_border(m[sl], (y0 == 0, y1 == h, x0 == 0, x1 == w))
     cover = _cover_weights(mm, np.asarray(contrast, np.float64)[sl], owner[sl] == b, ring_px)
     lines = find_contours(np.pad(cover, 1), 0.5)  # closed: zero cover outside
     if not lines:

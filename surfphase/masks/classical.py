@@ -644,6 +644,19 @@ def ring_hulls(
     return comp, hulls
 
 
+def fill_holes_to_border(mask: np.ndarray, at_border: tuple[bool, bool, bool, bool]) -> np.ndarray:
+    """``mask`` (bool (h, w), a crop of one object) with its holes filled, the crop's
+    sides flagged in ``at_border`` (top, bottom, left, right: the image's border)
+    counted as closed: a backlit bubble's bright core that the frame cuts open is filled
+    as well, where ``ndi.binary_fill_holes`` leaves it open to the border."""
+    pads = [(int(at_border[0]), int(at_border[1])), (int(at_border[2]), int(at_border[3]))]
+    big = np.pad(mask, pads, constant_values=True)
+    filled = ndi.binary_fill_holes(big)
+    return filled[
+        pads[0][0] : filled.shape[0] - pads[0][1], pads[1][0] : filled.shape[1] - pads[1][1]
+    ]
+
+
 def foreground_mask(
     contrast: np.ndarray,
     params: Mapping | None = None,
@@ -661,7 +674,7 @@ def foreground_mask(
     structure (``static``, (H, W) bool), where a bubble's contrast against the dim
     plate is lower, ``static_edge`` is the edge instead, and an object there is closed
     (a disc of ``static_close_px``) before its holes are filled. Holes (bright cores) are
-    filled; with ``return_cores`` the filled holes are returned too, as a second
+    filled, and cores the image's border cuts open (:func:`fill_holes_to_border`); with ``return_cores`` the filled holes are returned too, as a second
     (H, W) bool array: one core per bubble that shows one. ``noise`` ((H, W), the
     detection contrast's standard deviation, :func:`contrast_noise`) raises the two
     hysteresis thresholds to ``noise_low`` and ``noise_high`` times it where that is
@@ -711,7 +724,11 @@ def foreground_mask(
             # plate: closed, the rim is one ring around one body.
             closed = ndi.binary_closing(np.pad(edge, r_close), close)
             edge = closed[r_close:-r_close, r_close:-r_close] & region
-        filled = ndi.binary_fill_holes(edge)
+        # A bubble leaving the frame: its core, open to the border, is filled too (left
+        # open, the ring's two arms were split into two bubbles by the watershed).
+        h, w = comp.shape
+        at_border = (sl[0].start == 0, sl[0].stop >= h, sl[1].start == 0, sl[1].stop >= w)
+        filled = fill_holes_to_border(edge, at_border)
         if k in hulls and (edge & hulls[k][sl]).sum() >= 3:
             # An open ring around its core: the outline is the hull of the ring's edge.
             filled = convex_hull_image(edge & hulls[k][sl])
