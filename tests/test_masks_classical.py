@@ -199,6 +199,13 @@ def test_a_plate_seen_with_backlight_below_it_is_the_plate():
         assert labels.max() + 1 == 2
         assert best_iou(truths[t], labels, 0) > 0.8
         assert best_iou(truths[t], labels, 1) > 0.9
+    # A dark band across the top of the view is no plate; one across its lower half,
+    # or one reaching the bottom border, can be.
+    comp = np.zeros((40, 30), int)
+    comp[30:36] = 1
+    comp[2:8] = 2
+    comp[20:, 10:14] = 3
+    assert classical.plate_components(comp).tolist() == [1, 3]
 
 
 @pytest.mark.parametrize("v0, r", [(-2.0, 10.0), (0.0, 7.0), (2.0, 7.0)])

@@ -130,11 +130,16 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
 def plate_components(comp: np.ndarray) -> np.ndarray:
     """The labels of (H, W) int ``comp`` (0: none) that can be the plate: a region
     reaching the bottom border, where the plate enters the view, or spanning the view
-    from its left border to its right (the plate seen from level or below, with
-    backlight under it too). Returns the sorted labels (int array)."""
-    bottom = comp[-1][comp[-1] > 0]
+    from its left border to its right in its lower half (the plate seen from level or
+    below, with backlight under it too; a dark band across the top of the view is not
+    the plate, under the bubbles). Returns the sorted labels (int array)."""
+    bottom = np.unique(comp[-1][comp[-1] > 0])
     left, right = comp[:, 0][comp[:, 0] > 0], comp[:, -1][comp[:, -1] > 0]
-    return np.union1d(np.unique(bottom), np.intersect1d(left, right))
+    across = np.intersect1d(left, right)
+    if across.size:
+        rows = ndi.mean(np.arange(comp.shape[0])[:, None] + 0 * comp, comp, across)
+        across = across[np.asarray(rows) >= 0.5 * (comp.shape[0] - 1)]
+    return np.union1d(bottom, across)
 
 
 def _fill_along_rows(band: np.ndarray, unknown: np.ndarray) -> np.ndarray:
