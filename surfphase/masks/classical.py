@@ -69,11 +69,12 @@ def estimate_background(image: np.ndarray, degree: int = 4, iterations: int = 3)
     total ``degree`` in normalised pixel coordinates is fitted by least squares to the
     others. A region failing the second test that cannot be the plate
     (:func:`plate_components`) is then judged against that polynomial instead (darker
-    than 0.6 × it): a vignetted corner is darker than 0.6 × the 95th percentile too,
-    but not than the backlight there, and left out it got the polynomial's
-    extrapolation, up to 29 % too bright (a static "object" in every frame). The polynomial is then refitted without the
-    pixels that stay clearly (2.5 robust σ and 5 %) below it. Vignetting and uneven
-    illumination are smooth and broad, so they are followed, not rejected.
+    than 0.6 × it): a vignetted corner is darker than 0.6 × the 95th percentile too, but
+    not than the backlight there, and left out it got the polynomial's extrapolation, up
+    to 29 % too bright (a static "object" in every frame). The polynomial is then
+    refitted without the pixels that stay clearly (2.5 robust σ and 5 %) below it.
+    Vignetting and uneven illumination are smooth and broad, so they are followed, not
+    rejected.
     Returns (H, W) float32.
     """
     h, w = image.shape
@@ -137,7 +138,9 @@ def plate_components(comp: np.ndarray) -> np.ndarray:
     left, right = comp[:, 0][comp[:, 0] > 0], comp[:, -1][comp[:, -1] > 0]
     across = np.intersect1d(left, right)
     if across.size:
-        rows = ndi.mean(np.arange(comp.shape[0])[:, None] + 0 * comp, comp, across)
+        rows = ndi.mean(
+            np.broadcast_to(np.arange(comp.shape[0])[:, None], comp.shape), comp, across
+        )
         across = across[np.asarray(rows) >= 0.5 * (comp.shape[0] - 1)]
     return np.union1d(bottom, across)
 
@@ -275,13 +278,14 @@ def static_background(
     per-pixel *median* there is not lifted by the bright cores of bubbles that sit
     at a nucleation site in a good part of the frames.
 
-    The backlight is the robust polynomial fit of the reference. A static dark
-    structure — the heated plate — is the part of the reference darker than
+    The backlight is the robust polynomial fit of the reference. A static dark structure
+    — the heated plate — is the part of the reference darker than
     ``(1 − static_dark_frac)`` × backlight that can be the plate (reaching the bottom
     border, or spanning the width: :func:`plate_components`) and larger than
-    ``static_min_area_frac`` of the image. Its upper edge is taken per column and cleaned of the dents of bubbles sitting on it (which stay
-    in the reference when nucleation never stops) by :func:`polyline_edge` over
-    windows of ``static_notch_frac`` of the width, within ``static_edge_tol_px``.
+    ``static_min_area_frac`` of the image. Its upper edge is taken per column and
+    cleaned of the dents of bubbles sitting on it (which stay in the reference when
+    nucleation never stops) by :func:`polyline_edge` over windows of
+    ``static_notch_frac`` of the width, within ``static_edge_tol_px``.
     Inside the structure (and two rows above its edge, its blurred rim) the
     background is the reference itself, except where the reference departs from its
     running median *along* the edge by more than ``static_outlier_frac``: there a
@@ -672,19 +676,20 @@ def foreground_mask(
 ):
     """(H, W) bool bubble pixels from the relative contrast.
 
-    Objects are *detected* by hysteresis on the smoothed contrast; each object's
-    *edge* is then placed where the unsmoothed contrast crosses ``edge_frac`` of the
-    object's own peak (95th percentile, off the static structure), which follows the
-    true outline of a blurred shadow whatever its darkness. In front of the static
-    structure (``static``, (H, W) bool), where a bubble's contrast against the dim
-    plate is lower, ``static_edge`` is the edge instead, and an object there is closed
-    (a disc of ``static_close_px``) before its holes are filled. Holes (bright cores) are
-    filled, and cores the image's border cuts open (:func:`fill_holes_to_border`); with ``return_cores`` the filled holes are returned too, as a second
-    (H, W) bool array: one core per bubble that shows one. ``noise`` ((H, W), the
-    detection contrast's standard deviation, :func:`contrast_noise`) raises the two
-    hysteresis thresholds to ``noise_low`` and ``noise_high`` times it where that is
-    higher. ``detect``: the (H, W) image to detect on (:func:`detection_contrast`);
-    default the smoothed ``contrast``.
+    Objects are *detected* by hysteresis on the smoothed contrast; each object's *edge*
+    is then placed where the unsmoothed contrast crosses ``edge_frac`` of the object's
+    own peak (95th percentile, off the static structure), which follows the true outline
+    of a blurred shadow whatever its darkness. In front of the static structure
+    (``static``, (H, W) bool), where a bubble's contrast against the dim plate is lower,
+    ``static_edge`` is the edge instead, and an object there is closed (a disc of
+    ``static_close_px``) before its holes are filled. Holes (bright cores) are filled,
+    and cores the image's border cuts open (:func:`fill_holes_to_border`); with
+    ``return_cores`` the filled holes are returned too, as a second (H, W) bool array:
+    one core per bubble that shows one. ``noise`` ((H, W), the detection contrast's
+    standard deviation, :func:`contrast_noise`) raises the two hysteresis thresholds to
+    ``noise_low`` and ``noise_high`` times it where that is higher. ``detect``: the (H,
+    W) image to detect on (:func:`detection_contrast`); default the smoothed
+    ``contrast``.
     """
     p = {**CLASSICAL_DEFAULTS, **(params or {})}
     sm = smoothed(contrast, p) if detect is None else detect
