@@ -716,6 +716,7 @@ def foreground_mask(
     if static is not None and r_close > 0:
         yy, xx = np.mgrid[-r_close : r_close + 1, -r_close : r_close + 1]
         close = xx**2 + yy**2 <= r_close**2
+    h, w = comp.shape
     for k, sl in enumerate(ndi.find_objects(comp), start=1):
         if sl is None:
             continue
@@ -736,7 +737,6 @@ def foreground_mask(
             edge = closed[r_close:-r_close, r_close:-r_close] & region
         # A bubble leaving the frame: its core, open to the border, is filled too (left
         # open, the ring's two arms were split into two bubbles by the watershed).
-        h, w = comp.shape
         at_border = (sl[0].start == 0, sl[0].stop >= h, sl[1].start == 0, sl[1].stop >= w)
         filled = fill_holes_to_border(edge, at_border)
         if k in hulls and (edge & hulls[k][sl]).sum() >= 3:

@@ -250,11 +250,11 @@ def frame_anchors(
     cp, ap = params["classical"], params["anchors"]
     cents, cuts = [], []
     for c in names:
+        plate = backgrounds[c][1]  # the plate's image: its own edge darkness
         per, per_cut = [], []
         missing: dict[int, set[int]] = {}
         for t in range(stacks[c].shape[0]):
             con = classical.relative_contrast(stacks[c][t], cp, backgrounds[c])
-            plate = backgrounds[c][1]
             cen = anchors.coverage_centroids(con, labels[c][t], int(ap["ring_px"]), plate)
             if young and young.get(t):
                 cen.update(
