@@ -23,6 +23,7 @@ from surfphase.masks.anchors import (
     coverage_centroids,
     cut_centres,
     downsample_labels,
+    visible_shares,
 )
 from surfphase.masks.stage import scaled_instances
 from surfphase.mesh.stage import silhouette_distance
@@ -218,6 +219,64 @@ def test_anchored_table_reports_triangulated_tracks():
     grad = np.gradient(run[["x", "y", "z"]].to_numpy(float), run["time_s"].to_numpy(), axis=0)
     assert np.allclose(grad, run[["vx", "vy", "vz"]].to_numpy(float), atol=1e-12)
     assert np.abs(run[["vx", "vy", "vz"]].to_numpy(float) - v).max() < 0.01
+
+
+def test_anchored_table_reports_a_mostly_hidden_centre_without_a_velocity():
+    # A bubble rising at v leaves the frame: its last four centres come from short arcs
+    # (visible share under 0.15) and drift 20-80 µm off, as a shape mode moves them.
+    frames = np.arange(16)
+    v = np.array([0.01, 0.3, 0.0])
+    x0 = np.array([0.0, 0.005, 0.0])
+    rng = np.random.default_rng(3)
+    centres = x0 + v * frames[:, None] / 1000.0 + rng.normal(0, 1e-6, (16, 3))
+    centres[12:, 1] += [2e-5, 4e-5, 6e-5, 8e-5]
+    visible = np.r_[np.ones(10), 0.5, 0.2, 0.12, 0.09, 0.06, 0.05]
+    anchors = pd.DataFrame(
+        [(f, 1, *centres[f], visible[f]) for f in frames],
+        columns=["frame", "bubble", "x", "y", "z", "visible"],
+    )
+    table = _surfel_table(frames, [1])
+    for window in (0.0, 0.005):
+        out = anchored_table(table, anchors, set(), window, 1, 3, None, (), 0.15)
+        out = out.set_index("frame")
+        assert list(out.index) == list(frames)  # every centre is reported ...
+        weak = out.loc[12:]
+        assert np.array_equal(weak[["x", "y", "z"]].to_numpy(float), centres[12:])
+        assert weak[["vx", "vy", "vz"]].isna().all().all()  # ... without a velocity there
+        # The others are the track of the sure centres alone, their velocities near v.
+        alone = anchored_table(table, anchors[anchors.frame < 12], set(), window, 1, 3)
+        sure = out.loc[:11, ["x", "y", "z", "vx", "vy", "vz"]].to_numpy(float)
+        assert np.allclose(sure, alone[["x", "y", "z", "vx", "vy", "vz"]].to_numpy(float))
+        assert np.abs(out.loc[:11, ["vx", "vy", "vz"]].to_numpy(float) - v).max() < 0.005
+    # Every centre counting (the default 0), the hidden centres bend the track's end.
+    out = anchored_table(table, anchors, set(), 0.005, 1, 3).set_index("frame")
+    assert np.abs(out.loc[9:11, ["vx", "vy", "vz"]].to_numpy(float) - v).max() > 0.008
+
+
+def test_visible_shares_of_a_disc_the_border_cuts():
+    # A disc of radius 20 px centred d px inside the left border: its visible share is
+    # the circular segment's area over the disc's (analytic), its pixels as counted.
+    r, h, w = 20.0, 80, 80
+    yy, xx = np.mgrid[0:h, 0:w]
+    frames = np.array([4, 5, 6])
+    labels, cents, cuts, want = [], [], [], []
+    for d in (-14.0, 0.0, 9.0):
+        lab = np.where((xx - d) ** 2 + (yy - 40.0) ** 2 <= r * r, 3, -1).astype(np.int32)
+        labels.append(lab)
+        cents.append({3: (d, 40.0, np.pi * r * r)})
+        cuts.append({3})
+        a = np.arccos(np.clip(-(d + 0.5) / r, -1, 1))  # pixels from column 0 (edge -0.5)
+        want.append((r * r * (a - np.sin(a) * np.cos(a))) / (np.pi * r * r))
+    table = pd.DataFrame({"frame": frames, "bubble": [3, 3, 3]})
+    whole = [{3: (40.0, 40.0, np.pi * r * r)}] * 3
+    got = visible_shares(table, [cents, whole], [cuts, [set()] * 3], [labels, labels], frames)
+    assert np.allclose(got, want, atol=0.02)
+    assert got[0] < 0.15 < got[1] < got[2] < 1
+    # Neither view fitted: the whole silhouette is seen.
+    none = [[set()] * 3, [set()] * 3]
+    assert np.array_equal(
+        visible_shares(table, [cents, whole], none, [labels] * 2, frames), [1, 1, 1]
+    )
 
 
 def test_silhouette_distance_against_brute_force_projection():

@@ -120,8 +120,9 @@ def method_track_table(
     if min_track_frames is None:
         min_track_frames = int(DEFAULTS["min_track_frames"])
     return anchored_table(
-        table, anchors, nuc, window_s, order, min_track_frames, len(frames), rules
-    )
+        table, anchors, nuc, window_s, order, min_track_frames, len(frames), rules,
+        float(DEFAULTS["track_min_visible"]),
+    )  # fmt: skip
 
 
 def track_consistency(pred: pd.DataFrame) -> float:

@@ -277,6 +277,7 @@ def anchored_table(
     min_track_frames: int = 1,
     n_frames: int | None = None,
     rules: tuple = (),
+    min_visible: float = 0.0,
 ) -> pd.DataFrame:
     """``bubbles.csv`` with each bubble's centre from its triangulated silhouettes.
 
@@ -289,7 +290,10 @@ def anchored_table(
     ``track_window_s`` > 0 both the centres and the velocities come from the moving
     polynomial of :func:`smooth_tracks` along each run (so they agree). The nucleation
     region (id 0) keeps its surfels' centroid, in the frames of ``nucleation_frames``
-    (its mask is seen there). ``n_surfels`` is kept.
+    (its mask is seen there). ``n_surfels`` is kept. A row whose ``visible`` share
+    (the anchors' column, when they have it) is under ``min_visible`` keeps its centre
+    as measured and has no velocity (NaN); it is left out of the velocities and the
+    smoothing of the rest of its run, which it splits.
 
     Args:
         table: :func:`bubble_table` without smoothing.
@@ -297,24 +301,49 @@ def anchored_table(
         nucleation_frames: session frame indices where every view's masks show id 0.
         track_window_s, track_order: as ``fit: track_window_s``, ``track_order``.
         rules: :func:`smooth_tracks`' further arguments (:func:`track_rules`).
+        min_visible: as ``fit: track_min_visible``.
     """
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
     nuc = table[(table["bubble"] == 0) & table["frame"].isin(sorted(nucleation_frames))]
     bub = table[table["bubble"] >= 1].drop(columns=xyz + vel)
     low = ["low", "reproj_px"] if {"low", "reproj_px"} <= set(anchors.columns) else []
-    a = anchors[anchors["bubble"] >= 1][["frame", "bubble", *xyz, *low]]
+    vis = ["visible"] if "visible" in anchors.columns else []
+    a = anchors[anchors["bubble"] >= 1][["frame", "bubble", *xyz, *low, *vis]]
     bub = bub.merge(a, on=["frame", "bubble"], how="inner")
     if not low:
         bub["low"], bub["reproj_px"] = False, 0.0
     bub = bub.sort_values(["bubble", "frame"], kind="stable").reset_index(drop=True)
+    seg = _runs(bub)
+    need = int(min_track_frames) if n_frames is None else min(int(min_track_frames), n_frames)
+    keep = np.bincount(seg)[seg] >= need
+    bub = bub[keep].reset_index(drop=True)
+    bub[vel] = np.nan
+    weak = bub["visible"].to_numpy(np.float64) < float(min_visible) if vis else None
+    if weak is not None and weak.any():
+        sure = bub[~weak].reset_index(drop=True)
+        _track_velocities(sure, _runs(sure), track_window_s, track_order, rules)
+        bub.loc[~weak, xyz + vel] = sure[xyz + vel].to_numpy()
+    else:
+        _track_velocities(bub, _runs(bub), track_window_s, track_order, rules)
+    out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
+    return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
+
+
+def _runs(bub: pd.DataFrame) -> np.ndarray:
+    """(R,) run id of each row of ``bub`` (rows sorted by bubble, then frame): a run is
+    one bubble's consecutive frames."""
     f = bub["frame"].to_numpy(np.int64)
     b = bub["bubble"].to_numpy(np.int64)
     new_run = np.r_[True, (b[1:] != b[:-1]) | (f[1:] != f[:-1] + 1)][: len(b)]
-    seg = np.cumsum(new_run)
-    need = int(min_track_frames) if n_frames is None else min(int(min_track_frames), n_frames)
-    keep = np.bincount(seg)[seg] >= need
-    bub, seg = bub[keep].reset_index(drop=True), seg[keep]
-    bub[vel] = np.nan
+    return np.cumsum(new_run)
+
+
+def _track_velocities(
+    bub: pd.DataFrame, seg: np.ndarray, track_window_s: float, track_order: int, rules: tuple
+) -> None:
+    """:func:`anchored_table`'s velocities (and smoothed centres) of the rows of ``bub``
+    along their runs ``seg``, in place."""
+    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
     for s in np.unique(seg):
         rows = np.flatnonzero(seg == s)
         if len(rows) >= 2:
@@ -331,8 +360,6 @@ def anchored_table(
         bub.loc[~lead, xyz + vel] = clean[xyz + vel].to_numpy()
         if lead.any():
             extrapolate_leads(bub, seg, lead, reach)
-    out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
-    return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 
 
 #: A low row leads its track when its views disagree this many times more than the
@@ -638,6 +665,7 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
             int(p["min_track_frames"]),
             F,
             rules,
+            float(p["track_min_visible"]),
         )
     else:
         table = bubble_table(

@@ -303,6 +303,32 @@ def anchor_table(
     return pd.DataFrame(rows, columns=ANCHOR_COLUMNS)
 
 
+def visible_shares(
+    table: pd.DataFrame,
+    centroids: Sequence[Sequence[Mapping[int, tuple[float, float, float]]]],
+    cut: Sequence[Sequence[set[int]]],
+    labels: Sequence[np.ndarray],
+    frames: np.ndarray,
+) -> np.ndarray:
+    """(R,) each :func:`anchor_table` row's visible share: over the two views whose
+    centre came from an outline fit (``cut``: the frame's border or a bubble in front
+    hides part of the silhouette), the least of its silhouette's pixel count in that
+    view's (T, H, W) ``labels`` over the fitted whole area (``centroids``' third entry,
+    pixels²), at most 1; 1 where neither view's centre was fitted. A centre fitted to a
+    short arc moves with the bubble's shape modes as well as its centre."""
+    out = np.ones(len(table))
+    pos = {int(f): k for k, f in enumerate(np.asarray(frames, np.int64))}
+    for i, (f, b) in enumerate(zip(table["frame"], table["bubble"], strict=True)):
+        k, b = pos[int(f)], int(b)
+        for v in (0, 1):
+            if b in cut[v][k] and b in centroids[v][k]:
+                area = float(centroids[v][k][b][2])
+                seen = float(np.count_nonzero(np.asarray(labels[v][k]) == b))
+                if area > 0:
+                    out[i] = min(out[i], seen / area)
+    return np.minimum(out, 1.0)
+
+
 def low_bottoms(
     table: pd.DataFrame,
     cameras: Sequence[Camera],

@@ -179,10 +179,10 @@ ANCHOR_DEFAULTS: dict = {
     # frame and each outline's rms distance to its circle is at most max_sphere_rms of
     # the circle's radius; min_visible_sphere above 1: never. Below 0.15 the centres
     # stay close (on the bench's leaving bubbles, 5-15 % inside: within 0.07 r_eq), but
-    # the visible cap moves with the bubble's shape modes as well as its centre, and a
-    # track's velocity from those frames is worse (0.05 took 3 of 64 sessions' velocity
-    # error up by a fifth or more).
-    "min_visible_sphere": 0.15,
+    # the visible cap moves with the bubble's shape modes as well as its centre: their
+    # velocities are 5-25 % off, so the fit reports those centres without a velocity
+    # (fit: track_min_visible; anchors.csv's ``visible`` is each centre's share inside).
+    "min_visible_sphere": 0.05,
     "max_sphere_rms": 0.08,
     # Where the other view has the bubble's centre and area, the sphere lies on that
     # centre's ray with that size and only its depth is fitted; where neither has one,

@@ -13,11 +13,12 @@ Outputs in ``OUT``:
 * ``instances.csv`` — ``frame, camera, bubble, area, cx, cy, x0, y0, x1, y1, score``
   (pixels; ``score`` is the backend's confidence);
 * ``events.csv`` — ``frame, camera, event, parents, children`` (merge, split, detach);
-* ``anchors.csv`` — ``frame, bubble, x, y, z, reproj_px, size_ratio, r_m, cut, low``: each
-  bubble's centre triangulated from its sub-pixel silhouette centroids in the first two
-  views (m, lab frame; :mod:`surfphase.masks.anchors`; ``cut``: a view's silhouette was
-  cut by its border and its centre is that of the ellipse fitted to the visible
-  outline), where the views agree. Where they do
+* ``anchors.csv`` — ``frame, bubble, x, y, z, reproj_px, size_ratio, r_m, cut, low,
+  visible``: each bubble's centre triangulated from its sub-pixel silhouette centroids
+  in the first two views (m, lab frame; :mod:`surfphase.masks.anchors`; ``cut``: a
+  view's silhouette was cut by its border and its centre is that of the ellipse fitted
+  to the visible outline; ``visible``: the least share of a fitted silhouette inside
+  its view), where the views agree. Where they do
   not, the bubble is removed from that frame's masks (``dropped_inconsistent`` in
   ``masks.json``).
 
@@ -55,7 +56,9 @@ from surfphase.settings import check_keys
 
 #: The columns of ``anchors.csv``: :func:`frame_anchors`' table less ``consistent``
 #: (only consistent rows are written).
-ANCHOR_FILE_COLUMNS = [*(k for k in anchors.ANCHOR_COLUMNS if k != "consistent"), "low"]
+ANCHOR_FILE_COLUMNS = [
+    *(k for k in anchors.ANCHOR_COLUMNS if k != "consistent"), "low", "visible"
+]  # fmt: skip
 
 
 def merge_params(params: Mapping | None) -> dict:
@@ -298,6 +301,9 @@ def frame_anchors(
         [labels[c] for c in names],
         frames,
         float(params["associate"]["nucleation_height"]),
+    )
+    table["visible"] = anchors.visible_shares(
+        table, cents, cuts, [labels[c] for c in names], frames
     )
     table.attrs["split"] = split
     return table
@@ -864,7 +870,7 @@ def _anchor_and_drop(
 
     Returns (instances, consistent anchors, how many pairs dropped, static ids).
     """
-    anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "low", "position"])
+    anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "low", "visible", "position"])
     if len(stacks) < 2:
         return instances, anchor_tab, 0, []
     young = young_merged(
