@@ -228,7 +228,8 @@ def test_anchored_table_reports_a_mostly_hidden_centre_without_a_velocity():
     v = np.array([0.01, 0.3, 0.0])
     x0 = np.array([0.0, 0.005, 0.0])
     rng = np.random.default_rng(3)
-    centres = x0 + v * frames[:, None] / 1000.0 + rng.normal(0, 1e-6, (16, 3))
+    line = x0 + v * frames[:, None] / 1000.0
+    centres = line + rng.normal(0, 1e-6, (16, 3))
     centres[12:, 1] += [2e-5, 4e-5, 6e-5, 8e-5]
     visible = np.r_[np.ones(10), 0.5, 0.2, 0.12, 0.09, 0.06, 0.05]
     anchors = pd.DataFrame(
@@ -236,21 +237,33 @@ def test_anchored_table_reports_a_mostly_hidden_centre_without_a_velocity():
         columns=["frame", "bubble", "x", "y", "z", "visible"],
     )
     table = _surfel_table(frames, [1])
+    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
     for window in (0.0, 0.005):
         out = anchored_table(table, anchors, set(), window, 1, 3, None, (), 0.15)
         out = out.set_index("frame")
         assert list(out.index) == list(frames)  # every centre is reported ...
-        weak = out.loc[12:]
-        assert np.array_equal(weak[["x", "y", "z"]].to_numpy(float), centres[12:])
-        assert weak[["vx", "vy", "vz"]].isna().all().all()  # ... without a velocity there
-        # The others are the track of the sure centres alone, their velocities near v.
+        assert out.loc[12:, vel].isna().all().all()  # ... without a velocity there,
+        # placed on the track of the others (the straight line here), not the drift.
+        assert np.abs(out.loc[12:, xyz].to_numpy(float) - line[12:]).max() < 1e-5
+        # The others: the track of the sure centres alone, its velocities near v ...
         alone = anchored_table(table, anchors[anchors.frame < 12], set(), window, 1, 3)
-        sure = out.loc[:11, ["x", "y", "z", "vx", "vy", "vz"]].to_numpy(float)
-        assert np.allclose(sure, alone[["x", "y", "z", "vx", "vy", "vz"]].to_numpy(float))
-        assert np.abs(out.loc[:11, ["vx", "vy", "vz"]].to_numpy(float) - v).max() < 0.005
+        assert np.allclose(out.loc[:11, xyz].to_numpy(float), alone[xyz].to_numpy(float))
+        assert np.allclose(out.loc[:10, vel].to_numpy(float), alone[vel].to_numpy(float)[:11])
+        assert np.abs(out.loc[:11, vel].to_numpy(float) - v).max() < 0.005
+        # ... and the track's central differences are its velocities.
+        p, t = out[xyz].to_numpy(float), out["time_s"].to_numpy(float)
+        d = (p[2:12] - p[:10]) / (t[2:12] - t[:10])[:, None]
+        assert np.allclose(d, out.loc[1:10, vel].to_numpy(float), atol=1e-9)
+        assert np.allclose(np.gradient(p, t, axis=0)[11], out.loc[11, vel].to_numpy(float))
     # Every centre counting (the default 0), the hidden centres bend the track's end.
     out = anchored_table(table, anchors, set(), 0.005, 1, 3).set_index("frame")
-    assert np.abs(out.loc[9:11, ["vx", "vy", "vz"]].to_numpy(float) - v).max() > 0.008
+    assert np.abs(out.loc[9:11, vel].to_numpy(float) - v).max() > 0.008
+    # With fewer than three sure centres in its run, nothing places the hidden centres:
+    # the run is reported as measured, without velocities.
+    few = anchors[anchors.frame >= 10]
+    out = anchored_table(table, few, set(), 0.005, 1, 3, None, (), 0.15)
+    assert np.array_equal(out[xyz].to_numpy(float), centres[10:])
+    assert out[vel].isna().all().all()
 
 
 def test_visible_shares_of_a_disc_the_border_cuts():

@@ -291,9 +291,11 @@ def anchored_table(
     polynomial of :func:`smooth_tracks` along each run (so they agree). The nucleation
     region (id 0) keeps its surfels' centroid, in the frames of ``nucleation_frames``
     (its mask is seen there). ``n_surfels`` is kept. A row whose ``visible`` share
-    (the anchors' column, when they have it) is under ``min_visible`` keeps its centre
-    as measured and has no velocity (NaN); it is left out of the velocities and the
-    smoothing of the rest of its run, which it splits.
+    (the anchors' column, when they have it) is under ``min_visible`` is left out of the
+    smoothing of its run; its centre is placed on the parabola through the run's
+    nearest other centres and it has no velocity (NaN; :func:`place_weak`). A run with
+    fewer than :data:`WEAK_MIN_SURE` other rows keeps its centres as measured and has
+    no velocity at all.
 
     Args:
         table: :func:`bubble_table` without smoothing.
@@ -318,15 +320,62 @@ def anchored_table(
     keep = np.bincount(seg)[seg] >= need
     bub = bub[keep].reset_index(drop=True)
     bub[vel] = np.nan
-    weak = bub["visible"].to_numpy(np.float64) < float(min_visible) if vis else None
-    if weak is not None and weak.any():
-        sure = bub[~weak].reset_index(drop=True)
-        _track_velocities(sure, _runs(sure), track_window_s, track_order, rules)
-        bub.loc[~weak, xyz + vel] = sure[xyz + vel].to_numpy()
+    weak = np.zeros(len(bub), bool)
+    if vis:
+        weak = bub["visible"].to_numpy(np.float64) < float(min_visible)
+    if weak.any():
+        seg = _runs(bub)
+        sure = np.bincount(seg, weights=~weak, minlength=seg.max() + 1)[seg]
+        # A run with too few sure centres to place the others by: measured, no velocity.
+        measured = sure < WEAK_MIN_SURE
+        fit = ~weak & ~measured
+        part = bub[fit].reset_index(drop=True)
+        _track_velocities(part, _runs(part), track_window_s, track_order, rules)
+        bub.loc[fit, xyz + vel] = part[xyz + vel].to_numpy()
+        reach = (rules[2] if len(rules) > 2 else 0.0) or track_window_s or 0.008
+        place_weak(bub, seg, weak & ~measured, reach)
     else:
         _track_velocities(bub, _runs(bub), track_window_s, track_order, rules)
     out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
+
+
+#: Fewest rows of a run with a sure centre (``visible`` at least ``fit:
+#: track_min_visible``) that place its mostly hidden ones (:func:`place_weak`).
+WEAK_MIN_SURE = 3
+
+
+def place_weak(bub: pd.DataFrame, seg: np.ndarray, weak: np.ndarray, window_s: float) -> None:
+    """Centres of each run's ``weak`` rows (a bubble mostly outside the frame or hidden)
+    from the parabola fitted (least squares) to its other rows' centres over
+    ``window_s`` seconds from the nearest of them (at least 3 rows, else the 3 nearest),
+    the velocities of the run ``np.gradient`` of its centres, so that track and
+    velocity still agree, and none (NaN) at the weak rows; in place. ``bub``: rows
+    ``time_s, x, y, z, vx, vy, vz``, each run's rows (``seg``) in time order, at least
+    :data:`WEAK_MIN_SURE` of them not weak in each run that has weak ones.
+
+    A centre fitted to a short arc moves with the bubble's shape modes as well as with
+    its centre (0.05 r_eq on the benchmark's leaving bubbles): differences of such
+    centres are no velocity, and a track through them would show a user who
+    differentiates it another velocity than the one reported next to them."""
+    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
+    for s in np.unique(seg[weak]):
+        rows = np.flatnonzero(seg == s)
+        t = bub["time_s"].to_numpy(np.float64)[rows]
+        p = bub[xyz].to_numpy(np.float64)[rows]
+        hidden = weak[rows]
+        known = np.flatnonzero(~hidden)
+        for i in np.flatnonzero(hidden):
+            j = known[np.argmin(np.abs(t[known] - t[i]))]
+            ref = known[np.abs(t[known] - t[j]) <= window_s + 1e-12]
+            if len(ref) < 3:
+                ref = known[np.argsort(np.abs(t[known] - t[i]), kind="stable")[:3]]
+            coef = np.polyfit(t[ref] - t[j], p[ref], 2)  # (3, 3): one parabola per axis
+            p[i] = [np.polyval(coef[:, k], t[i] - t[j]) for k in range(3)]
+        v = np.gradient(p, t, axis=0) if len(rows) > 1 else np.full((1, 3), np.nan)
+        v[hidden] = np.nan
+        bub.loc[bub.index[rows], xyz] = p
+        bub.loc[bub.index[rows], vel] = v
 
 
 def _runs(bub: pd.DataFrame) -> np.ndarray:

@@ -98,10 +98,12 @@ DEFAULTS: dict = {
     "min_track_frames": 3,  # ... in runs of at least this many consecutive frames
     # ... and where less than this share (0-1) of its silhouette is inside a view (the
     # anchors' ``visible``: a bubble mostly outside the frame, its centre fitted to a short
-    # arc), its centre is reported without a velocity (empty) and is left out of its
-    # track's smoothing: such a centre moves with the bubble's shape modes as well as its
-    # centre (within 0.1 r_eq of the truth on the bench's leaving bubbles, their
-    # velocities from those frames 5-25 % off against 2-3 %). 0: every centre counts.
+    # arc), it is reported without a velocity (empty), left out of its track's smoothing
+    # and placed on the parabola through the track's nearest other centres (a track with
+    # fewer than 3 others: as measured, and no velocity anywhere on it). Such a centre
+    # moves with the bubble's shape modes as well as its centre (0.05 r_eq off on the
+    # bench's leaving bubbles; velocities from it 5-25 % off against 2-3 %), so a track
+    # through it would differ from the velocities beside it. 0: every centre counts.
     "track_min_visible": 0.15,
     "track_window_s": 0.003,  # > 0: centroids and velocities of each bubble track from a
     # moving polynomial over this many seconds (Savitzky-Golay; 0: per-frame values)
