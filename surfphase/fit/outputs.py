@@ -347,25 +347,35 @@ WEAK_MIN_SURE = 3
 
 def place_weak(bub: pd.DataFrame, seg: np.ndarray, weak: np.ndarray, window_s: float) -> None:
     """Centres of each run's ``weak`` rows (a bubble mostly outside the frame or hidden)
-    from the parabola fitted (least squares) to its other rows' centres over
-    ``window_s`` seconds from the nearest of them (at least 3 rows, else the 3 nearest),
-    the velocities of the run ``np.gradient`` of its centres, so that track and
-    velocity still agree, and none (NaN) at the weak rows; in place. ``bub``: rows
-    ``time_s, x, y, z, vx, vy, vz``, each run's rows (``seg``) in time order, at least
-    :data:`WEAK_MIN_SURE` of them not weak in each run that has weak ones.
+    on the parabola through its other centres (:func:`place_on_parabola`), with no
+    velocity (NaN) there; in place. ``bub``, ``seg``, ``window_s``: as there, at least
+    :data:`WEAK_MIN_SURE` rows of each run that has weak ones not weak.
 
     A centre fitted to a short arc moves with the bubble's shape modes as well as with
     its centre (0.05 r_eq on the benchmark's leaving bubbles): differences of such
     centres are no velocity, and a track through them would show a user who
     differentiates it another velocity than the one reported next to them."""
+    place_on_parabola(bub, seg, weak, window_s, velocity=False)
+
+
+def place_on_parabola(
+    bub: pd.DataFrame, seg: np.ndarray, placed: np.ndarray, window_s: float, velocity: bool
+) -> None:
+    """Centres of each run's ``placed`` rows from the parabola fitted (least squares) to
+    its other rows' centres over ``window_s`` seconds from the nearest of them (at least
+    3 rows, else the 3 nearest), and the velocities of the run ``np.gradient`` of its
+    centres, so that track and velocity still agree (NaN at the placed rows unless
+    ``velocity``); in place. ``bub``: rows ``time_s, x, y, z, vx, vy, vz``, each run's
+    rows (``seg``) in time order, at least 3 of them not placed in each run that has
+    placed ones."""
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
-    for s in np.unique(seg[weak]):
+    for s in np.unique(seg[placed]):
         rows = np.flatnonzero(seg == s)
         t = bub["time_s"].to_numpy(np.float64)[rows]
         p = bub[xyz].to_numpy(np.float64)[rows]
-        hidden = weak[rows]
-        known = np.flatnonzero(~hidden)
-        for i in np.flatnonzero(hidden):
+        moved = placed[rows]
+        known = np.flatnonzero(~moved)
+        for i in np.flatnonzero(moved):
             j = known[np.argmin(np.abs(t[known] - t[i]))]
             ref = known[np.abs(t[known] - t[j]) <= window_s + 1e-12]
             if len(ref) < 3:
@@ -373,7 +383,8 @@ def place_weak(bub: pd.DataFrame, seg: np.ndarray, weak: np.ndarray, window_s: f
             coef = np.polyfit(t[ref] - t[j], p[ref], 2)  # (3, 3): one parabola per axis
             p[i] = [np.polyval(coef[:, k], t[i] - t[j]) for k in range(3)]
         v = np.gradient(p, t, axis=0) if len(rows) > 1 else np.full((1, 3), np.nan)
-        v[hidden] = np.nan
+        if not velocity:
+            v[moved] = np.nan
         bub.loc[bub.index[rows], xyz] = p
         bub.loc[bub.index[rows], vel] = v
 
@@ -448,24 +459,9 @@ def extrapolate_leads(
     """Centres of each track's ``lead`` rows from the parabola fitted (least squares) to
     its smoothed centres over its first ``window_s`` seconds after them (at least 3
     rows), and the velocities of the whole track again ``np.gradient`` of its centres,
-    so that track and velocity still agree; in place. ``bub``: rows ``time_s, x, y, z,
-    vx, vy, vz``, each track's rows in time order."""
-    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
-    for s in np.unique(seg[lead]):
-        rows = np.flatnonzero(seg == s)
-        t = bub["time_s"].to_numpy(np.float64)[rows]
-        p = bub[xyz].to_numpy(np.float64)[rows]
-        first = lead[rows]
-        ref = np.flatnonzero(~first)
-        ref = ref[t[ref] <= t[ref[0]] + window_s + 1e-12]
-        if len(ref) < 3:
-            ref = np.flatnonzero(~first)[:3]
-        t0 = t[ref[0]]
-        coef = np.polyfit(t[ref] - t0, p[ref], 2)  # (3, 3): one parabola per axis
-        tt = t[first] - t0
-        p[first] = np.stack([np.polyval(coef[:, j], tt) for j in range(3)], axis=1)
-        bub.loc[bub.index[rows], xyz] = p
-        bub.loc[bub.index[rows], vel] = np.gradient(p, t, axis=0)
+    so that track and velocity still agree; in place (:func:`place_on_parabola`).
+    ``bub``: rows ``time_s, x, y, z, vx, vy, vz``, each track's rows in time order."""
+    place_on_parabola(bub, seg, lead, window_s, velocity=True)
 
 
 def track_segments(
