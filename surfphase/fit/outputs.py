@@ -332,7 +332,8 @@ def anchored_table(
         part = bub[fit].reset_index(drop=True)
         _track_velocities(part, _runs(part), track_window_s, track_order, rules)
         bub.loc[fit, xyz + vel] = part[xyz + vel].to_numpy()
-        reach = (rules[2] if len(rules) > 2 else 0.0) or track_window_s or 0.008
+        # Over the blend window (as the leads), else the track's: the whole run unsmoothed.
+        reach = (rules[2] if len(rules) > 2 else 0.0) or track_window_s or np.inf
         place_weak(bub, seg, weak & ~measured, reach)
     else:
         _track_velocities(bub, _runs(bub), track_window_s, track_order, rules)
