@@ -117,7 +117,10 @@ def test_status_tells_a_stale_lock_from_a_live_run(tiny: Path, tmp_path: Path, c
     from surfphase.commands.run import lock_note
 
     work = make_workdir(tmp_path, tiny)
-    target = INGEST_TARGETS[:1]
+    # Two sessions' ingest on one core: once the first has started, the second keeps the
+    # run alive, so the kill finds it running even on a busy machine (with one target
+    # the run could end, releasing its lock, between the check below and the kill).
+    target = INGEST_TARGETS
     proc = subprocess.Popen(
         [sys.executable, "-m", "surfphase", "run", "--campaign", str(work), "--cores", "1"]
         + target,
@@ -129,8 +132,10 @@ def test_status_tells_a_stale_lock_from_a_live_run(tiny: Path, tmp_path: Path, c
     while time.time() < deadline and not (work / "logs/ingest").exists():
         time.sleep(0.2)
     live = lock_note(work)
+    running = proc.poll() is None
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
+    assert running, "the run ended before it could be killed"
     assert live and live[0].startswith("note: Snakemake is running in this campaign (pid ")
     assert main(["status", "--campaign", str(work)]) == 0
     text = capsys.readouterr().out
