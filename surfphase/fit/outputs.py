@@ -293,9 +293,12 @@ def anchored_table(
     (its mask is seen there). ``n_surfels`` is kept. A row whose ``visible`` share
     (the anchors' column, when they have it) is under ``min_visible`` is left out of the
     smoothing of its run; its centre is placed on the parabola through the run's
-    nearest other centres and it has no velocity (NaN; :func:`place_weak`). A run with
-    fewer than :data:`WEAK_MIN_SURE` other rows keeps its centres as measured and has
-    no velocity at all.
+    nearest other centres and it has no velocity (NaN; :func:`place_on_parabola`): a
+    centre fitted to a short arc moves with the bubble's shape modes as well as with its
+    centre, so differences of such centres are no velocity, and a track through them
+    would show a user who differentiates it another velocity than the one reported
+    beside them. A run with fewer than :data:`WEAK_MIN_SURE` other rows keeps its
+    centres as measured and has no velocity at all.
 
     Args:
         table: :func:`bubble_table` without smoothing.
@@ -332,9 +335,9 @@ def anchored_table(
         part = bub[fit].reset_index(drop=True)
         _track_velocities(part, _runs(part), track_window_s, track_order, rules)
         bub.loc[fit, xyz + vel] = part[xyz + vel].to_numpy()
-        # Over the blend window (as the leads), else the track's: the whole run unsmoothed.
-        reach = (rules[2] if len(rules) > 2 else 0.0) or track_window_s or np.inf
-        place_weak(bub, seg, weak & ~measured, reach)
+        # Over the leads' reach; the whole run where the track is not smoothed.
+        reach = _reach(rules, track_window_s) or np.inf
+        place_on_parabola(bub, seg, weak & ~measured, reach, velocity=False)
     else:
         _track_velocities(bub, _runs(bub), track_window_s, track_order, rules)
     out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
@@ -342,21 +345,8 @@ def anchored_table(
 
 
 #: Fewest rows of a run with a sure centre (``visible`` at least ``fit:
-#: track_min_visible``) that place its mostly hidden ones (:func:`place_weak`).
+#: track_min_visible``) that place its mostly hidden ones (:func:`place_on_parabola`).
 WEAK_MIN_SURE = 3
-
-
-def place_weak(bub: pd.DataFrame, seg: np.ndarray, weak: np.ndarray, window_s: float) -> None:
-    """Centres of each run's ``weak`` rows (a bubble mostly outside the frame or hidden)
-    on the parabola through its other centres (:func:`place_on_parabola`), with no
-    velocity (NaN) there; in place. ``bub``, ``seg``, ``window_s``: as there, at least
-    :data:`WEAK_MIN_SURE` rows of each run that has weak ones not weak.
-
-    A centre fitted to a short arc moves with the bubble's shape modes as well as with
-    its centre (0.05 r_eq on the benchmark's leaving bubbles): differences of such
-    centres are no velocity, and a track through them would show a user who
-    differentiates it another velocity than the one reported next to them."""
-    place_on_parabola(bub, seg, weak, window_s, velocity=False)
 
 
 def place_on_parabola(
@@ -399,6 +389,12 @@ def _runs(bub: pd.DataFrame) -> np.ndarray:
     return np.cumsum(new_run)
 
 
+def _reach(rules: tuple, track_window_s: float) -> float:
+    """Seconds over which a run's placed centres take their parabola: the blend window
+    (``rules``' third entry, :func:`track_rules`), else ``track_window_s``."""
+    return (rules[2] if len(rules) > 2 else 0.0) or track_window_s
+
+
 def _track_velocities(
     bub: pd.DataFrame, seg: np.ndarray, track_window_s: float, track_order: int, rules: tuple
 ) -> None:
@@ -411,7 +407,7 @@ def _track_velocities(
             t = bub["time_s"].to_numpy()[rows]
             bub.loc[rows, vel] = np.gradient(bub[xyz].to_numpy(np.float64)[rows], t, axis=0)
     if track_window_s > 0 and len(bub):
-        reach = (rules[2] if len(rules) > 2 else 0.0) or track_window_s
+        reach = _reach(rules, track_window_s)
         lead = lead_rows(
             bub["low"].to_numpy(bool), bub["reproj_px"].to_numpy(np.float64),
             bub["time_s"].to_numpy(np.float64), seg, reach,

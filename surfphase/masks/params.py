@@ -178,9 +178,9 @@ ANCHOR_DEFAULTS: dict = {
     # (sphere_centres) when at least this fraction of each view's circle is inside the
     # frame and each outline's rms distance to its circle is at most max_sphere_rms of
     # the circle's radius; min_visible_sphere above 1: never. Below 0.15 the centres
-    # stay close (on the bench's leaving bubbles, 5-15 % inside: within 0.07 r_eq), but
-    # the visible cap moves with the bubble's shape modes as well as its centre: their
-    # velocities are 5-25 % off, so the fit reports those centres without a velocity
+    # stay close (on the bench's leaving bubbles, 5-15 % inside: 0.05 r_eq off on
+    # average), but the visible cap moves with the bubble's shape modes as well as its
+    # centre: velocities from them are 10 % off, so the fit reports them without one
     # (fit: track_min_visible; anchors.csv's ``visible`` is each centre's share inside).
     "min_visible_sphere": 0.05,
     "max_sphere_rms": 0.08,
