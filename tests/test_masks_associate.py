@@ -318,18 +318,23 @@ def _approaching_pair(n: int = 14, size: int = 72) -> dict[str, np.ndarray]:
     return out
 
 
-@pytest.mark.parametrize(("departure", "merge_frame"), [(0.02, 8), (10.0, 6)])
+@pytest.mark.parametrize(
+    ("departure", "fps", "merge_frame"),
+    [(0.02, 1000, 8), (10.0, 1000, 6), (0.02, 6000, 8), (0.02, 7000, 7), (0.02, 20000, 6)],
+)
 def test_bubbles_approaching_as_touching_lobes_merge_when_the_approach_speeds_up(
-    departure, merge_frame
+    departure, fps, merge_frame
 ):
-    """Touching silhouettes alone date the merge at frame 6 (10 ms of look-back at
-    1000 fps reaches it); the steady approach through frames 6–8 dates it one frame
-    before the lobes leave that trend (frame 9). With a departure threshold of
-    10 × the radii nothing departs, and the look-back alone decides."""
+    """Touching silhouettes alone date the merge at frame 6 (10 ms of look-back
+    reaches it); the steady approach through frames 6–8 dates it one frame before the
+    lobes leave that trend (frame 9), and one frame earlier for each whole frame of
+    the default ``merge_onset_s`` (0.15 ms: none at 1000 or 6000 fps, one at 7000 fps),
+    but never before the lobes touch (three would at 20,000 fps: frame 5). With a departure threshold
+    of 10 × the radii nothing departs, and the look-back alone decides."""
     labels = _approaching_pair()
     scores = {c: [np.ones(int(f.max()) + 1) for f in lab] for c, lab in labels.items()}
     params = {"merge_lobe_s": 0.01, "merge_departure": departure}
-    out, _, events = associate(labels, scores, None, params, plates=_no_plate(labels), fps=1000)
+    out, _, events = associate(labels, scores, None, params, plates=_no_plate(labels), fps=fps)
     ids = {c: _blob_ids(out[c]) for c in out}
     before, merged = ids["cam0"][0], ids["cam0"][-1]
     assert len(before) == 2 and len(merged) == 1 and not merged & before

@@ -22,6 +22,15 @@ def lobe_frames(merge_lobe_s: float, fps: float | None) -> int:
     return max(1, int(round(float(merge_lobe_s) * float(fps))))
 
 
+def onset_frames(merge_onset_s: float, fps: float | None) -> int:
+    """Whole frames of ``merge_onset_s`` seconds at ``fps`` (rounded down; 0 without
+    fps): the frames by which a merge's departure can show after its contact frame
+    beyond the one :func:`_merge_frame` always allows."""
+    if fps is None or not fps > 0:
+        return 0
+    return int(np.floor(float(merge_onset_s) * float(fps) + 1e-9))
+
+
 def _track_frames(tr: Tracks) -> dict[int, set[int]]:
     """Frames in which each track of one view has an instance."""
     out: dict[int, set[int]] = {}
@@ -113,9 +122,11 @@ def reconcile_merges(
       the parents' silhouettes touch in every view and are cut apart in at least
       one: the two lobes of a bubble that already merged;
     * but not before the frame before the lobes' centroid distance, in a view, departs
-      from its straight-line trend (``merge_trend_frames``, ``merge_departure``): two
-      bubbles about to touch also show as touching lobes (the liquid film between them
-      is dark), approaching steadily, while merged lobes slide together faster.
+      from its straight-line trend (``merge_trend_frames``, ``merge_departure``), less
+      the whole frames of ``merge_onset_s`` (:func:`onset_frames`: the lobes take
+      about that long to slide together measurably): two bubbles about to touch
+      also show as touching lobes (the liquid film between them is dark),
+      approaching steadily, while merged lobes slide together faster.
 
     From the merge frame on, the parents' instances belong to the merged track in
     both views, so the merged bubble never shares an id with a parent.
@@ -125,8 +136,9 @@ def reconcile_merges(
         labels: ``{camera: (T, H, W) int}`` instance labels (−1 background).
         pairs: :func:`pair_views` table of ``cam_a`` and ``cam_b``.
         params: :data:`ASSOCIATE_DEFAULTS` keys ``coast_frames``, ``merge_lobe_s``,
-            ``merge_trend_frames``, ``merge_departure``.
-        fps: the session's frame rate (frames per second), for ``merge_lobe_s``.
+            ``merge_trend_frames``, ``merge_departure``, ``merge_onset_s``.
+        fps: the session's frame rate (frames per second), for ``merge_lobe_s`` and
+            ``merge_onset_s``.
 
     Returns:
         New ``{camera: Tracks}`` for the two views (the inputs are not modified).
@@ -135,7 +147,11 @@ def reconcile_merges(
     other_view = {cam_a: cam_b, cam_b: cam_a}
     coast = int(params["coast_frames"])
     lobe = lobe_frames(params["merge_lobe_s"], fps)
-    trend = (int(params["merge_trend_frames"]), float(params["merge_departure"]))
+    trend = (
+        int(params["merge_trend_frames"]),
+        float(params["merge_departure"]),
+        onset_frames(params["merge_onset_s"], fps),
+    )
     pair_rows = list(pairs[["frame", "local_a", "local_b"]].itertuples(index=False))
     done: set[tuple[str, int]] = set()
     for _ in range(sum(len(t.events) for t in tr.values()) + 1):
@@ -239,13 +255,13 @@ def _joined(
 
 def _merge_frame(
     tr: Mapping[str, Tracks], labels: Mapping[str, np.ndarray], parents: Mapping[str, set[int]],
-    child: Mapping[str, int], f: int, f_last: int, lobe: int, trend: tuple[int, float],
+    child: Mapping[str, int], f: int, f_last: int, lobe: int, trend: tuple[int, float, int],
 ) -> int:  # fmt: skip
     """The frame of a merge first seen between ``f`` and ``f_last``: the first from
     which the parents touch in every view, dated back over up to ``lobe`` frames where
     they show as two touching lobes, but not before the frame before the lobes depart
-    from the parents' approach in a view (``trend``: ``(merge_trend_frames,
-    merge_departure)``, :func:`_departure`)."""
+    from the parents' approach in a view, less ``onset`` frames (``trend``:
+    ``(merge_trend_frames, merge_departure, onset)``, :func:`_departure`)."""
     first = f
     # Not merged while a view sees the parents apart (the first fusion was an
     # occlusion in the other view) ...
@@ -259,9 +275,10 @@ def _merge_frame(
         f = g
     # ... unless they still approach as before: bubbles about to touch are lobes too.
     if f + 1 < first:
-        deps = [_departure(tr[c], labels[c], parents[c], f, first, *trend) for c in parents]
+        frames, depart, onset = trend
+        deps = [_departure(tr[c], labels[c], parents[c], f, first, frames, depart) for c in parents]
         if any(g is not None for g in deps):
-            f = max(f, min(g for g in deps if g is not None) - 1)
+            f = max(f, min(g for g in deps if g is not None) - 1 - onset)
     return f
 
 

@@ -122,9 +122,13 @@ ASSOCIATE_DEFAULTS: dict = {
     # departs from a straight line through the previous merge_trend_frames frames of
     # the lobes' centroid distance, by more than merge_departure x their summed radii
     # (and 3 residual SDs), is the first seen merged; contact is dated one frame
-    # before it (a merge dated a frame early reports one wrong bubble, a frame late two).
+    # before it (a merge dated a frame early reports one wrong bubble, a frame late two)
+    # and merge_onset_s earlier still: the lobes need about that long to slide together
+    # by a measurable amount, however many frames that is. Dated as early as that lag
+    # allows (floor of merge_onset_s x fps frames, 0 below 1 / merge_onset_s fps).
     "merge_trend_frames": 5,
     "merge_departure": 0.02,
+    "merge_onset_s": 0.00015,
 }
 
 
