@@ -102,9 +102,10 @@ DEFAULTS: dict = {
     # and placed on the parabola through the track's nearest other centres (a track with
     # fewer than 3 others: as measured, and no velocity anywhere on it). Such a centre
     # moves with the bubble's shape modes as well as its centre (0.05 r_eq off on the
-    # bench's leaving bubbles; velocities from it 10 % off against 2-3 %), so a track
-    # through it would differ from the velocities beside it. 0: every centre counts.
-    "track_min_visible": 0.15,
+    # bench's leaving bubbles 5-15 % inside; velocities from centres 5-25 % inside 10 %
+    # off, from 25-60 % inside 4-5 %, whole 2.6 %), so a track through it would differ
+    # from the velocities beside it. 0: every centre counts.
+    "track_min_visible": 0.25,
     "track_window_s": 0.003,  # > 0: centroids and velocities of each bubble track from a
     # moving polynomial over this many seconds (Savitzky-Golay; 0: per-frame values)
     "track_order": 1,  # polynomial order of that fit

@@ -184,8 +184,9 @@ ANCHOR_DEFAULTS: dict = {
     # the circle's radius; min_visible_sphere above 1: never. Below 0.15 the centres
     # stay close (on the bench's leaving bubbles, 5-15 % inside: 0.05 r_eq off on
     # average), but the visible cap moves with the bubble's shape modes as well as its
-    # centre: velocities from them are 10 % off, so the fit reports them without one
-    # (fit: track_min_visible; anchors.csv's ``visible`` is each centre's share inside).
+    # centre: velocities from them are 10 % off, so the fit reports them (and those up
+    # to 25 % inside) without one (fit: track_min_visible; anchors.csv's ``visible`` is
+    # each centre's share inside).
     "min_visible_sphere": 0.05,
     "max_sphere_rms": 0.08,
     # Where the other view has the bubble's centre and area, the sphere lies on that
