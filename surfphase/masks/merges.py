@@ -147,11 +147,8 @@ def reconcile_merges(
     other_view = {cam_a: cam_b, cam_b: cam_a}
     coast = int(params["coast_frames"])
     lobe = lobe_frames(params["merge_lobe_s"], fps)
-    trend = (
-        int(params["merge_trend_frames"]),
-        float(params["merge_departure"]),
-        onset_frames(params["merge_onset_s"], fps),
-    )
+    trend = (int(params["merge_trend_frames"]), float(params["merge_departure"]))
+    onset = onset_frames(params["merge_onset_s"], fps)
     pair_rows = list(pairs[["frame", "local_a", "local_b"]].itertuples(index=False))
     done: set[tuple[str, int]] = set()
     for _ in range(sum(len(t.events) for t in tr.values()) + 1):
@@ -184,7 +181,7 @@ def reconcile_merges(
             m2 = tr[w].new()
             done.add((w, m2))
             parents[w], child[w] = {pm} | rest, m2
-        f = _merge_frame(tr, labels, parents, child, f, f_last, lobe, trend)
+        f = _merge_frame(tr, labels, parents, child, f, f_last, lobe, trend, onset)
         _apply_merge(tr, parents, child, f)
     return tr
 
@@ -255,13 +252,14 @@ def _joined(
 
 def _merge_frame(
     tr: Mapping[str, Tracks], labels: Mapping[str, np.ndarray], parents: Mapping[str, set[int]],
-    child: Mapping[str, int], f: int, f_last: int, lobe: int, trend: tuple[int, float, int],
+    child: Mapping[str, int], f: int, f_last: int, lobe: int, trend: tuple[int, float],
+    onset: int,
 ) -> int:  # fmt: skip
     """The frame of a merge first seen between ``f`` and ``f_last``: the first from
     which the parents touch in every view, dated back over up to ``lobe`` frames where
     they show as two touching lobes, but not before the frame before the lobes depart
-    from the parents' approach in a view, less ``onset`` frames (``trend``:
-    ``(merge_trend_frames, merge_departure, onset)``, :func:`_departure`)."""
+    from the parents' approach in a view (``trend``: ``(merge_trend_frames,
+    merge_departure)``, :func:`_departure`), less ``onset`` frames (:func:`onset_frames`)."""
     first = f
     # Not merged while a view sees the parents apart (the first fusion was an
     # occlusion in the other view) ...
@@ -275,8 +273,7 @@ def _merge_frame(
         f = g
     # ... unless they still approach as before: bubbles about to touch are lobes too.
     if f + 1 < first:
-        frames, depart, onset = trend
-        deps = [_departure(tr[c], labels[c], parents[c], f, first, frames, depart) for c in parents]
+        deps = [_departure(tr[c], labels[c], parents[c], f, first, *trend) for c in parents]
         if any(g is not None for g in deps):
             f = max(f, min(g for g in deps if g is not None) - 1 - onset)
     return f
