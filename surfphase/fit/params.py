@@ -118,7 +118,9 @@ DEFAULTS: dict = {
     "track_end_t": 5.0,
     # ... and, with a window > 0 (seconds), the track is the mean of that and a second
     # moving polynomial of order track_blend_order over this window (0: off): a short
-    # line that follows a bubble's changes and a long parabola that averages more noise.
+    # line that follows a bubble's changes and a long parabola that averages more noise;
+    # on a track shorter than this window, only where the track's whole curvature is
+    # significant (track_end_t's test): else that parabola is mostly the centres' bias.
     "track_blend_window_s": 0.008,
     "track_blend_order": 2,
     # ... and on a track of at least 7 frames, a centre farther from that smoothed track
