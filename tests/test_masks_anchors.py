@@ -22,6 +22,7 @@ from surfphase.masks.anchors import (
     border_ids,
     coverage_centroids,
     cut_centres,
+    disc_in_frame,
     downsample_labels,
     visible_shares,
 )
@@ -219,6 +220,33 @@ def test_anchored_table_reports_triangulated_tracks():
     grad = np.gradient(run[["x", "y", "z"]].to_numpy(float), run["time_s"].to_numpy(), axis=0)
     assert np.allclose(grad, run[["vx", "vy", "vz"]].to_numpy(float), atol=1e-12)
     assert np.abs(run[["vx", "vy", "vz"]].to_numpy(float) - v).max() < 0.01
+
+
+def test_anchored_table_reports_continued_centres_the_fit_has_no_surfels_for():
+    """A bubble leaving the frame whose continued centres (``continued``) outlast its
+    surfels (frames 10-12 here) is reported there all the same, at those centres,
+    with no surfels, the session's time of the frame and no velocity (their visible
+    share is under ``min_visible``); a centre not continued needs its surfels, as
+    before."""
+    frames = np.arange(13)
+    v = np.array([0.0, 0.3, 0.0])
+    X = np.array([0.0, 0.005, 0.0]) + v * frames[:, None] / 1000.0
+    visible = np.r_[np.ones(8), 0.2, 0.1, 0.05, 0.02, 0.0]
+    anchors = pd.DataFrame(
+        [(f, 1, *X[f], visible[f], f >= 10) for f in frames]
+        + [(11, 2, 0.0, 0.0, 0.0, 1.0, False)],  # not continued, no surfels: left out
+        columns=["frame", "bubble", "x", "y", "z", "visible", "continued"],
+    )
+    table = _surfel_table(frames[:10], [1])
+    out = anchored_table(table, anchors, set(), 0.0, 1, 3, None, (), 0.25).set_index("frame")
+    assert list(out.index) == list(frames) and set(out["bubble"]) == {1}
+    assert np.allclose(out.loc[10:, "time_s"], frames[10:] / 1000.0)
+    assert (out.loc[10:, "n_surfels"] == 0).all() and (out.loc[:9, "n_surfels"] == 50).all()
+    assert out.loc[8:, ["vx", "vy", "vz"]].isna().all().all()
+    assert np.abs(out.loc[10:, ["x", "y", "z"]].to_numpy(float) - X[10:]).max() < 1e-12
+    # Without the column (anchors written before it), rows need their surfels.
+    old = anchored_table(table, anchors.drop(columns="continued"), set(), 0.0, 1, 3, None, (), 0.25)
+    assert list(old["frame"]) == list(frames[:10])
 
 
 def test_anchored_table_reports_a_mostly_hidden_centre_without_a_velocity():
@@ -957,3 +985,88 @@ def test_two_bubbles_one_view_fuses_get_their_circles_from_its_outline(lateral):
         assert np.linalg.norm(row[["x", "y", "z"]].to_numpy(float)[0] - x) < 0.05 * rr
     # One bubble alone does not explain the outline: no fit with the other left out.
     assert occluded_centres([c0, c1], 1, pts, {4: known[4]}) is None
+
+
+def _leaving_sphere(fps: float, n: int):
+    """A 0.8 mm sphere rising at 0.3 m/s out of the top of both views of :func:`_rig`:
+    its (n, 3) centres (m), radius (m) and per view (n, H, W) labels (id 4 where the
+    sphere covers at least half of a pixel)."""
+    from scipy.optimize import brentq
+
+    c0, c1 = _rig()
+    r = 0.0008
+    x0 = np.array([0.0004, 0.0, -0.0003])
+    # The height where the centre projects onto cam0's top edge; start 0.4 mm below.
+    top = brentq(lambda y: c0.project((x0 + [0, y, 0])[None], distort=False)[0, 1] + 0.5, 0, 0.03)
+    t = np.arange(n) / fps
+    X = x0 + [0.0, top - 0.0004, 0.0] + np.outer(t, [0.01, 0.3, -0.02])
+    labs = []
+    for cam in (c0, c1):
+        f = np.sqrt(cam.K[0, 0] * cam.K[1, 1])
+        stack = []
+        for x in X:
+            u, v = cam.project(x[None], distort=False)[0]
+            rp = r * f / cam.world_to_camera(x[None])[0, 2]
+            stack.append(np.where(disk_cover(cam.height, cam.width, u, v, rp, 4) >= 0.5, 4, -1))
+        labs.append(np.stack(stack))
+    return (c0, c1), X, r, labs
+
+
+def test_a_leaving_bubble_is_continued_along_its_track_while_both_views_see_it():
+    """A sphere leaving the top of both views whose centres stop while slivers still
+    show (here: after frame 7): its centre continues the line of its last centres
+    (analytic truth: straight at constant speed) in each later frame where a view still
+    has its pixels and its circle reaches into both frames, with its radius, for up to
+    ``continue_s``, and no further; a sliver off the continued circle, a run that does
+    not end cut, or ``continue_s`` 0 stops it."""
+    from surfphase.masks.anchors import continued_centres
+
+    fps, n = 5000.0, 40
+    cams, X, r, labs = _leaving_sphere(fps, n)
+    anchors = pd.DataFrame(
+        [(f, 4, *X[f], 0.0, 1.0, r, f >= 3, True) for f in range(8)],
+        columns=["frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "r_m", "cut",
+                 "consistent"],
+    )  # fmt: skip
+    frames = np.arange(n)
+
+    def seen(f: int) -> bool:  # pixels in a view, and the circle reaches both frames
+        rho = [
+            r * np.sqrt(c.K[0, 0] * c.K[1, 1]) / c.world_to_camera(X[f][None])[0, 2] for c in cams
+        ]
+        uv = [c.project(X[f][None], distort=False)[0] for c in cams]
+        return any((lab[f] == 4).any() for lab in labs) and all(
+            disc_in_frame(*uv[k], rho[k], (c.height, c.width)) >= 1 for k, c in enumerate(cams)
+        )
+
+    last = next(f for f in range(8, n) if not seen(f))  # the first frame it is not seen
+    assert 8 + 10 < last < n  # seen past continue_s (10 frames), gone before the end
+    out = continued_centres(anchors, cams, labs, frames, fps, 0.02)
+    assert list(out["frame"]) == list(range(8, last))
+    assert np.abs(out[["x", "y", "z"]].to_numpy(float) - X[out["frame"]]).max() < 1e-9
+    assert np.allclose(out["r_m"], r) and out["cut"].all() and out["consistent"].all()
+    share = [
+        min(
+            (lab[f] == 4).sum()
+            / (
+                np.pi
+                * (r * np.sqrt(c.K[0, 0] * c.K[1, 1]) / c.world_to_camera(X[f][None])[0, 2]) ** 2
+            )
+            for c, lab in zip(cams, labs, strict=True)
+        )
+        for f in out["frame"]
+    ]  # the least share of its circle that a view's pixels cover
+    assert np.allclose(out["visible"], share)
+    # Within continue_s only (2 ms: 10 frames at 5,000 fps).
+    assert list(continued_centres(anchors, cams, labs, frames, fps, 0.002)["frame"]) == list(
+        range(8, 18)
+    )
+    assert continued_centres(anchors, cams, labs, frames, fps, 0.0).empty
+    # A run that does not end cut is not a bubble leaving: nothing continued.
+    assert continued_centres(anchors.assign(cut=False), cams, labs, frames, fps, 0.02).empty
+    # Frame 11's pixels of id 4 moved 6 px aside in both views: not on the continued
+    # circle, the continuation stops before it.
+    moved = [lab.copy() for lab in labs]
+    for lab in moved:
+        lab[11] = np.roll(lab[11], 6, axis=1)
+    assert list(continued_centres(anchors, cams, moved, frames, fps, 0.02)["frame"]) == [8, 9, 10]

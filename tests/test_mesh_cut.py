@@ -245,6 +245,34 @@ def test_a_cut_bubble_without_a_shape_gets_the_image_of_its_sphere():
     assert abs(volume(grown_cam, grown) / ref - 1) < 0.04
 
 
+def test_a_leaving_bubble_whose_sliver_the_labels_lost_gets_the_image_of_its_sphere():
+    """Sphere 3 leaving view 0 on the left with a sliver of 2-3 pixel columns that the
+    view's labels no longer hold (a continued centre, ``masks: anchors: continue_s``):
+    :func:`sphere_shapes` draws its exact image all the same, which completes the hull
+    to within 4 % of the uncut view's volume; once its circle is wholly outside the
+    frame, none."""
+    from surfphase.mesh.stage import mesh_params, sphere_shapes
+
+    cams = _rig()
+    labels = [_sphere_labels(c, SPHERES) for c in cams]
+    X, r = SPHERES[3]
+    cols = np.flatnonzero((labels[0] == 3).any(axis=0))
+    x0 = int(cols[-1] - 2)  # the frame starts 2-3 columns before the silhouette's end
+    cut_cam = cams[0].cropped(x0, 0, cams[0].width - x0, cams[0].height)
+    cut_lab = np.ascontiguousarray(labels[0][:, x0:])
+    cut_lab[cut_lab == 3] = -1  # the sliver lost
+    got = sphere_shapes(cut_cam, cut_lab, {3: SPHERES[3]}, set())
+    uv = cut_cam.project(X[None], distort=False)[0]
+    rho = np.sqrt(cut_cam.K[0, 0] * cut_cam.K[1, 1]) * r / cut_cam.world_to_camera(X[None])[0, 2]
+    np.testing.assert_allclose(got[3], (uv[0], uv[1], rho, rho, 0.0), rtol=1e-12)
+    p = mesh_params({"surface": "hull"})
+    grown_cam, grown = completed_view(cut_cam, cut_lab, got)
+    ref = _hull_volume([cams[0], cams[1]], [labels[0], labels[1]], p, 3)
+    assert abs(_hull_volume([grown_cam, cams[1]], [grown, labels[1]], p, 3) / ref - 1) < 0.04
+    gone = cams[0].cropped(int(cols[-1] + 2), 0, 20, cams[0].height)
+    assert sphere_shapes(gone, np.full((gone.height, 20), -1), {3: SPHERES[3]}, set()) == {}
+
+
 def test_an_oblate_bubble_cut_at_the_top_takes_its_sphere_before_a_fitted_circle():
     """An oblate silhouette (semi-axes 24 px across, 15 px up) with its top 40 % cut off
     by the frame and no whole shape in its track: the circle fitted to its visible

@@ -315,6 +315,8 @@ def anchored_table(
     vis = ["visible"] if "visible" in anchors.columns else []
     a = anchors[anchors["bubble"] >= 1][["frame", "bubble", *xyz, *low, *vis]]
     bub = bub.merge(a, on=["frame", "bubble"], how="inner")
+    if "continued" in anchors.columns:
+        bub = pd.concat([bub, _continued_rows(table, anchors, bub, a)], ignore_index=True)
     if not low:
         bub["low"], bub["reproj_px"] = False, 0.0
     bub = bub.sort_values(["bubble", "frame"], kind="stable").reset_index(drop=True)
@@ -342,6 +344,29 @@ def anchored_table(
         _track_velocities(bub, _runs(bub), track_window_s, track_order, rules)
     out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
+
+
+def _continued_rows(
+    table: pd.DataFrame, anchors: pd.DataFrame, bub: pd.DataFrame, a: pd.DataFrame
+) -> pd.DataFrame:
+    """:func:`anchored_table`'s rows of the anchors' continued centres
+    (:func:`surfphase.masks.anchors.continued_centres`) that no surfels of their id
+    have at that frame (``bub``: the rows that have): a bubble leaving the frame, whose
+    sliver the fit may no longer hold, is reported there all the same (``n_surfels``
+    0; ``time_s`` from the table's uniform sampling)."""
+    rows = a[anchors.loc[a.index, "continued"].astype(bool).to_numpy()]
+    have = bub.set_index(["frame", "bubble"]).index
+    rows = rows[~rows.set_index(["frame", "bubble"]).index.isin(have)]
+    ft = table.drop_duplicates("frame")[["frame", "time_s"]].to_numpy(np.float64)
+    if not len(rows) or len(ft) < 2:
+        return bub.iloc[:0]
+    slope, icpt = np.polyfit(ft[:, 0], ft[:, 1], 1)
+    out = rows.copy()
+    out["time_s"] = icpt + slope * out["frame"].to_numpy(np.float64)
+    for c in bub.columns:
+        if c not in out.columns:
+            out[c] = 0 if c == "n_surfels" else np.nan
+    return out[bub.columns]
 
 
 #: Fewest rows of a run with a sure centre (``visible`` at least ``fit:

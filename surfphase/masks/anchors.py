@@ -1070,3 +1070,127 @@ def lobe_centroids(
         vv, uu = np.mgrid[sl]
         out[b] = (*revolution_centroid(w, vv, uu), float(w.sum()))
     return out
+
+
+def disc_in_frame(u: float, v: float, rho: float, shape: tuple[int, int]) -> float:
+    """Pixels (count of pixel centres) of the disc of centre ``(u, v)`` and radius
+    ``rho`` (pixels) inside an image of ``shape`` (H, W)."""
+    h, w = int(shape[0]), int(shape[1])
+    r0, r1 = max(int(np.floor(v - rho)), 0), min(int(np.ceil(v + rho)), h - 1)
+    c0, c1 = max(int(np.floor(u - rho)), 0), min(int(np.ceil(u + rho)), w - 1)
+    if r0 > r1 or c0 > c1:
+        return 0.0
+    vv, uu = np.mgrid[r0 : r1 + 1, c0 : c1 + 1]
+    return float(np.count_nonzero(np.hypot(uu - u, vv - v) <= rho))
+
+
+def continued_centres(
+    table: pd.DataFrame,
+    cameras: Sequence[Camera],
+    labels: Sequence[np.ndarray],
+    frames: np.ndarray,
+    fps: float,
+    continue_s: float = ANCHOR_DEFAULTS["continue_s"],
+) -> pd.DataFrame:
+    """Centres of bubbles leaving (or entering) the frame past their last (first)
+    centre, continued along their track: :data:`ANCHOR_COLUMNS` rows plus ``visible``.
+
+    A bubble whose silhouette shrinks to a sliver at the border has no centre from an
+    outline fit (too little of it shows: ``min_visible_sphere``), yet both views still
+    see part of it. From the frame after a run of its consistent centres (``table``)
+    that ends with a cut one (``cut``), for up to ``continue_s`` seconds, its centre
+    continues the least-squares line through the run's centres of its last
+    ``continue_s`` seconds (at least two) and its radius is their median ``r_m``, while
+    at least one view still has pixels of its id in ``labels``, the sphere's image (the
+    centre's projection, radius f·r / depth) reaches into both frames, and every view's
+    pixels of the id lie within that circle (at most 10 % of them farther than
+    0.1 radius + 1 pixel from it); the same backwards from a run's first centre. A
+    continued centre is a prediction, not a measurement: its ``visible`` share is the
+    least, over the two views, of the id's pixels there over the circle's area.
+
+    Args:
+        table: :func:`anchor_table` rows (with ``consistent``).
+        cameras: the two views' undistorted cameras of ``labels``' grids.
+        labels: per view, (T, H, W) int labels.
+        frames: (T,) session frame index of each position.
+        fps: frames per second.
+        continue_s: seconds past a run's end a centre is continued; 0: none.
+
+    Returns:
+        the continued rows (``reproj_px`` 0, ``size_ratio`` 1, ``cut`` and
+        ``consistent`` True), in frame order.
+    """
+    cols = [*ANCHOR_COLUMNS, "visible"]
+    if continue_s <= 0 or fps <= 0 or not len(table):
+        return pd.DataFrame(columns=cols)
+    frames = np.asarray(frames, np.int64)
+    pos = {int(f): k for k, f in enumerate(frames)}
+    n = len(frames)
+    cams = list(cameras)[:2]
+    focal = [float(np.sqrt(c.K[0, 0] * c.K[1, 1])) for c in cams]
+    span = int(np.floor(continue_s * fps + 1e-9))
+    good = table[table["consistent"].astype(bool) & (table["bubble"] >= 1)]
+    taken = {(pos[int(f)], int(b)) for f, b in zip(good["frame"], good["bubble"], strict=True)}
+    rows = []
+    for b, g in good.groupby("bubble"):
+        b = int(b)
+        k = np.array([pos[int(f)] for f in g["frame"]])
+        order = np.argsort(k)
+        k = k[order]
+        X = g[["x", "y", "z"]].to_numpy(np.float64)[order]
+        r = g["r_m"].to_numpy(np.float64)[order]
+        cut = g["cut"].to_numpy(bool)[order]
+        starts = np.flatnonzero(np.r_[True, np.diff(k) != 1])
+        ends = np.r_[starts[1:], len(k)] - 1
+        for a, e in zip(starts, ends, strict=True):
+            for edge, step in ((e, 1), (a, -1)):
+                if not cut[edge]:
+                    continue
+                near = np.flatnonzero((np.abs(k - k[edge]) <= span) & (k >= k[a]) & (k <= k[e]))
+                if len(near) < 2:
+                    continue
+                t = k[near] / fps
+                coef = np.polyfit(t - t.mean(), X[near], 1)
+                R = float(np.median(r[near]))
+                for j in range(1, span + 1):
+                    q = int(k[edge] + step * j)
+                    if q < 0 or q >= n or (q, b) in taken:
+                        break
+                    c = coef[0] * (q / fps - t.mean()) + coef[1]
+                    row = _continued_row(c, R, b, q, cams, focal, labels)
+                    if row is None:
+                        break
+                    taken.add((q, b))
+                    rows.append((int(frames[q]), b, *map(float, c), 0.0, 1.0, R, True, True, row))
+    out = pd.DataFrame(rows, columns=cols)
+    return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
+
+
+def _continued_row(
+    X: np.ndarray,
+    R: float,
+    b: int,
+    q: int,
+    cams: Sequence[Camera],
+    focal: Sequence[float],
+    labels: Sequence[np.ndarray],
+) -> float | None:
+    """:func:`continued_centres`' test of the sphere ``(X, R)`` of id ``b`` at position
+    ``q``: its ``visible`` share, or None where it fails."""
+    shares, present = [], False
+    for cam, f, lab in zip(cams, focal, labels, strict=True):
+        z = float(cam.world_to_camera(np.asarray(X)[None])[0, 2])
+        if z <= 0:
+            return None
+        u, v = cam.project(np.asarray(X)[None], distort=False)[0]
+        rho = f * R / z
+        im = np.asarray(lab[q])
+        if disc_in_frame(u, v, rho, im.shape) < 1:
+            return None
+        ys, xs = np.nonzero(im == b)
+        if len(ys):
+            present = True
+            if np.mean(np.hypot(xs - u, ys - v) > 1.1 * rho + 1.0) > 0.1:
+                return None
+        shares.append(len(ys) / (np.pi * rho * rho))
+    return float(min(min(shares), 1.0)) if present else None

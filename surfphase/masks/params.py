@@ -194,6 +194,15 @@ ANCHOR_DEFAULTS: dict = {
     # True fits the whole sphere to both views' outlines (its centre drifts with a
     # spheroid's shape as less of it is inside), False leaves the bubble without a centre.
     "sphere_both_cut": True,
+    # A bubble leaving the frame whose sliver is too small for any of the fits above
+    # (or entering it) has its centre continued along its track past its last (first)
+    # centre for up to this many seconds (continued_centres: the line through its
+    # centres of the last continue_s, their median radius), while a view still shows
+    # part of it, its sphere's image reaches into both frames and holds what shows.
+    # Without it such a bubble is neither reported nor meshed in its last frames, though
+    # both views see it; a continued centre is reported without a velocity (its
+    # ``visible`` share is under fit: track_min_visible). 0: never.
+    "continue_s": 0.002,
     # Two or three bubbles that one view sees apart, whole, and the other fuses into one
     # silhouette (one in front of another): their spheres on the first view's rays fitted
     # to the fused outline's arcs give their centres there (occluded_centres; rms at most

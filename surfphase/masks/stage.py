@@ -57,7 +57,7 @@ from surfphase.settings import check_keys
 #: The columns of ``anchors.csv``: :func:`frame_anchors`' table less ``consistent``
 #: (only consistent rows are written).
 ANCHOR_FILE_COLUMNS = [
-    *(k for k in anchors.ANCHOR_COLUMNS if k != "consistent"), "low", "visible"
+    *(k for k in anchors.ANCHOR_COLUMNS if k != "consistent"), "low", "visible", "continued"
 ]  # fmt: skip
 
 
@@ -234,6 +234,7 @@ def frame_anchors(
     params: Mapping,
     young: Mapping[int, set[int]] | None = None,
     related: set[frozenset[int]] = frozenset(),
+    fps: float | None = None,
 ) -> pd.DataFrame:
     """The triangulated centres (:func:`surfphase.masks.anchors.anchor_table`) of the
     first two views' bubbles, from their sub-pixel silhouette centroids; a silhouette
@@ -248,7 +249,10 @@ def frame_anchors(
     :func:`merge_relatives`), and that silhouette is split between them. The ids of
     ``young`` (frame position → young merged bubbles, :func:`young_merged`) take the
     centroid of their silhouette's solid of revolution
-    (:func:`surfphase.masks.anchors.lobe_centroids`)."""
+    (:func:`surfphase.masks.anchors.lobe_centroids`). A bubble leaving or entering the
+    frame past its last or first centre has it continued along its track
+    (:func:`surfphase.masks.anchors.continued_centres`, ``continue_s``; with ``fps``):
+    those rows have ``continued`` True."""
     names = list(stacks)[:2]
     cp, ap = params["classical"], params["anchors"]
     cents, cuts = [], []
@@ -305,6 +309,15 @@ def frame_anchors(
     table["visible"] = anchors.visible_shares(
         table, cents, cuts, [labels[c] for c in names], frames
     )
+    table["continued"] = False
+    if fps and float(ap["continue_s"]) > 0 and len(names) == 2:
+        more = anchors.continued_centres(
+            table, cams, [labels[c] for c in names], frames, float(fps), float(ap["continue_s"])
+        )
+        if len(more):
+            more["low"], more["continued"] = False, True
+            table = pd.concat([table, more[table.columns]], ignore_index=True)
+            table = table.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
     table.attrs["split"] = split
     return table
 
@@ -870,14 +883,16 @@ def _anchor_and_drop(
 
     Returns (instances, consistent anchors, how many pairs dropped, static ids).
     """
-    anchor_tab = pd.DataFrame(columns=[*anchors.ANCHOR_COLUMNS, "low", "visible", "position"])
+    anchor_tab = pd.DataFrame(
+        columns=[*anchors.ANCHOR_COLUMNS, "low", "visible", "continued", "position"]
+    )
     if len(stacks) < 2:
         return instances, anchor_tab, 0, []
     young = young_merged(
         events, list(stacks)[:2], len(frames), fps, float(p["anchors"]["lobe_centroid_s"])
     )
     anchor_tab = frame_anchors(
-        stacks, labels, bgs, cameras, frames, p, young, merge_relatives(events)
+        stacks, labels, bgs, cameras, frames, p, young, merge_relatives(events), fps
     )
     pos = {int(f): k for k, f in enumerate(frames)}
     anchor_tab["position"] = [pos[int(f)] for f in anchor_tab["frame"]]

@@ -350,12 +350,15 @@ def sphere_shapes(
     cuts in one view's (H, W) labels, not in ``done``, that have a sphere in ``spheres``
     (``{id: ((3,) centre m, radius m)}``): its image in the undistorted ``cam``
     (centre's projection, radius f·r / depth), where the visible part fits inside it
-    (at most 2 % of its pixels outside)."""
-    from surfphase.masks.anchors import border_ids
+    (at most 2 % of its pixels outside); and of those with a sphere that have no pixels
+    in ``lab`` while their circle reaches into the frame (a bubble leaving it, whose
+    sliver the view's labels no longer hold: ``masks: anchors: continue_s``)."""
+    from surfphase.masks.anchors import border_ids, disc_in_frame
 
     out: dict[int, tuple] = {}
     f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
-    for b in sorted(border_ids(lab) - set(done)):
+    absent = set(spheres) - set(np.unique(lab).tolist())
+    for b in sorted((border_ids(lab) | absent) - set(done)):
         if b < 1 or b not in spheres:
             continue
         X, r = spheres[b]
@@ -364,6 +367,10 @@ def sphere_shapes(
             continue
         u, v = cam.project(np.asarray(X)[None], distort=False)[0]
         rho = f * r / z
+        if b in absent:
+            if disc_in_frame(u, v, rho, lab.shape) >= 1:
+                out[b] = (float(u), float(v), rho, rho, 0.0)
+            continue
         ys, xs = np.nonzero(lab == b)
         if np.mean(np.hypot(xs - u, ys - v) > rho + 0.5) <= 0.02:
             out[b] = (float(u), float(v), rho, rho, 0.0)
