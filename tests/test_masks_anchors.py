@@ -1062,6 +1062,11 @@ def test_a_leaving_bubble_is_continued_along_its_track_while_both_views_see_it()
         range(8, 18)
     )
     assert continued_centres(anchors, cams, labs, frames, fps, 0.0).empty
+    # Played backwards, the bubble enters the frame: continued before its first centre.
+    back = anchors.assign(frame=n - 1 - anchors["frame"])
+    rev = continued_centres(back, cams, [lab[::-1] for lab in labs], frames, fps, 0.02)
+    assert list(rev["frame"]) == [n - 1 - f for f in range(last - 1, 7, -1)]
+    assert np.abs(rev[["x", "y", "z"]].to_numpy(float) - X[n - 1 - rev["frame"]]).max() < 1e-9
     # A run that does not end cut is not a bubble leaving: nothing continued.
     assert continued_centres(anchors.assign(cut=False), cams, labs, frames, fps, 0.02).empty
     # Frame 11's pixels of id 4 moved 6 px aside in both views: not on the continued
