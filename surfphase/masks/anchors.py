@@ -216,6 +216,18 @@ def agreeing_pieces(
     return out
 
 
+def sphere_image(cam: Camera, X: np.ndarray, r: float) -> tuple[float, float, float] | None:
+    """The circle ``(u, v, ρ)`` (pixels) of a sphere of centre ``X`` (m, lab frame) and
+    radius ``r`` (m) in the undistorted ``cam``: its centre's projection and
+    ``ρ = f·r / depth`` (the inverse of :func:`apparent_size`); None behind the camera."""
+    X = np.asarray(X, np.float64)[None]
+    z = float(cam.world_to_camera(X)[0, 2])
+    if z <= 0:
+        return None
+    u, v = cam.project(X, distort=False)[0]
+    return float(u), float(v), float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) * float(r) / z
+
+
 def apparent_size(cam: Camera, X: np.ndarray, area_px: float) -> float:
     """Equivalent radius (m) of a silhouette of ``area_px`` pixels² seen at point ``X``
     (m, lab frame): ``sqrt(area / π) · depth / f``."""
@@ -1127,7 +1139,6 @@ def continued_centres(
     pos = {int(f): k for k, f in enumerate(frames)}
     n = len(frames)
     cams = list(cameras)[:2]
-    focal = [float(np.sqrt(c.K[0, 0] * c.K[1, 1])) for c in cams]
     span = int(np.floor(continue_s * fps + 1e-9))
     good = table[table["consistent"].astype(bool) & (table["bubble"] >= 1)]
     taken = {(pos[int(f)], int(b)) for f, b in zip(good["frame"], good["bubble"], strict=True)}
@@ -1157,7 +1168,7 @@ def continued_centres(
                     if q < 0 or q >= n or (q, b) in taken:
                         break
                     c = coef[0] * (q / fps - t.mean()) + coef[1]
-                    row = _continued_row(c, R, b, q, cams, focal, labels)
+                    row = _continued_row(c, R, b, q, cams, labels)
                     if row is None:
                         break
                     taken.add((q, b))
@@ -1172,18 +1183,16 @@ def _continued_row(
     b: int,
     q: int,
     cams: Sequence[Camera],
-    focal: Sequence[float],
     labels: Sequence[np.ndarray],
 ) -> float | None:
     """:func:`continued_centres`' test of the sphere ``(X, R)`` of id ``b`` at position
     ``q``: its ``visible`` share, or None where it fails."""
     shares, present = [], False
-    for cam, f, lab in zip(cams, focal, labels, strict=True):
-        z = float(cam.world_to_camera(np.asarray(X)[None])[0, 2])
-        if z <= 0:
+    for cam, lab in zip(cams, labels, strict=True):
+        circle = sphere_image(cam, X, R)
+        if circle is None:
             return None
-        u, v = cam.project(np.asarray(X)[None], distort=False)[0]
-        rho = f * R / z
+        u, v, rho = circle
         im = np.asarray(lab[q])
         if disc_in_frame(u, v, rho, im.shape) < 1:
             return None

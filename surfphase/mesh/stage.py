@@ -322,16 +322,16 @@ def hidden_parts(
         return None
     spheres = s.spheres.get(int(s.surfels["frame"][t]), {})
     out: dict[int, list[np.ndarray | None]] = {}
+    from surfphase.masks.anchors import sphere_image
+
     for k, (cam, lab) in enumerate(zip(views, labels, strict=True)):
         cam = cam.undistorted()
-        f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
         vv, uu = np.mgrid[0 : lab.shape[0], 0 : lab.shape[1]]
         for b, (X, r) in spheres.items():
-            z = float(cam.world_to_camera(np.asarray(X)[None])[0, 2])
-            if b < 1 or z <= 0 or not (lab == b).any():
+            circle = sphere_image(cam, X, r)
+            if b < 1 or circle is None or not (lab == b).any():
                 continue
-            u, v = cam.project(np.asarray(X)[None], distort=False)[0]
-            rho = f * r / z
+            u, v, rho = circle
             disc = np.hypot(uu - u, vv - v) <= rho
             behind = disc & (lab >= 1) & (lab != b)
             own = lab == b
@@ -353,20 +353,17 @@ def sphere_shapes(
     (at most 2 % of its pixels outside); and of those with a sphere that have no pixels
     in ``lab`` while their circle reaches into the frame (a bubble leaving it, whose
     sliver the view's labels no longer hold: ``masks: anchors: continue_s``)."""
-    from surfphase.masks.anchors import border_ids, disc_in_frame
+    from surfphase.masks.anchors import border_ids, disc_in_frame, sphere_image
 
     out: dict[int, tuple] = {}
-    f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
     absent = set(spheres) - set(np.unique(lab).tolist())
     for b in sorted((border_ids(lab) | absent) - set(done)):
         if b < 1 or b not in spheres:
             continue
-        X, r = spheres[b]
-        z = float(cam.world_to_camera(np.asarray(X)[None])[0, 2])
-        if z <= 0:
+        circle = sphere_image(cam, *spheres[b])
+        if circle is None:
             continue
-        u, v = cam.project(np.asarray(X)[None], distort=False)[0]
-        rho = f * r / z
+        u, v, rho = circle
         if b in absent:
             if disc_in_frame(u, v, rho, lab.shape) >= 1:
                 out[b] = (float(u), float(v), rho, rho, 0.0)
