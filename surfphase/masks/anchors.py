@@ -32,6 +32,11 @@ from surfphase.masks.params import ANCHOR_DEFAULTS
 
 #: Fewest outline points an outline fit takes (a conic has 5 degrees of freedom).
 _MIN_OUTLINE_POINTS = 8
+#: :func:`moving_sphere`'s prior on the velocity (m/s): each component costs as much as
+#: one outline point 1 pixel off per this speed. It decides what the outlines leave free
+#: (along a view's ray where the other view shows no outline) and moves no more than a
+#: few hundredths of a pixel what they measure.
+_SPHERE_SPEED_SCALE = 1.0
 
 ANCHOR_COLUMNS = [
     "frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "r_m", "cut", "consistent"
@@ -1177,6 +1182,15 @@ def continued_centres(
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 
 
+def _pixel_share(cam: Camera, X: np.ndarray, R: float, lab: np.ndarray, b: int) -> float:
+    """The pixels of id ``b`` in one view's (H, W) labels over the area (pixels²) of
+    the image circle of the sphere ``(X, R)`` (:func:`sphere_image`); 0 behind it."""
+    circle = sphere_image(cam, X, R)
+    if circle is None:
+        return 0.0
+    return float(np.count_nonzero(np.asarray(lab) == b)) / (np.pi * circle[2] ** 2)
+
+
 def _continued_row(
     X: np.ndarray,
     R: float,
@@ -1203,3 +1217,192 @@ def _continued_row(
                 return None
         shares.append(len(ys) / (np.pi * rho * rho))
     return float(min(min(shares), 1.0)) if present else None
+
+
+def moving_sphere(
+    cameras: Sequence[Camera],
+    outlines: Mapping[int, Sequence[np.ndarray | None]],
+    fps: float,
+) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """The sphere moving at a constant velocity whose images' circles a bubble's visible
+    outlines lie on, over several frames and both views at once.
+
+    A bubble entering or leaving the frame that no frame shows whole, in either view,
+    has no track to continue; in some frames one view shows a sliver too small to fit,
+    or none. One moving sphere fitted to every frame's outlines takes its depth from
+    the frames both views see and carries it, with the velocity, into those one view
+    sees. The fit minimises the outline points' radial distances to the circles (centre
+    X(q)'s projection, radius f·R / depth; soft-L1 with a 1-pixel scale:
+    ``scipy.optimize.least_squares``), from the sphere triangulated from the circles
+    (:func:`circle_fit`) of the frame whose lesser outline is longest, at rest.
+
+    Args:
+        cameras: the two views' undistorted cameras.
+        outlines: ``{frame position q: (points of view 0, points of view 1)}``, each
+            (N, 2) visible outline points (pixels, column, row;
+            :func:`visible_outline`) or None where that view shows none.
+        fps: frames per second.
+
+    Returns:
+        ``(X, V, R, q0)``: the centre X (3,) m at position q0 (the mean fitted
+        position), the velocity V (3,) m/s (X(q) = X + V·(q − q0)/fps) and the radius R
+        (m); None where no frame has both views' outlines of at least
+        ``_MIN_OUTLINE_POINTS`` points or the fit fails.
+    """
+    from scipy.optimize import least_squares
+
+    cams = list(cameras)[:2]
+    pts = {
+        q: [None if p is None else np.asarray(p, np.float64).reshape(-1, 2) for p in o]
+        for q, o in outlines.items()
+    }
+    both = [
+        q for q, o in pts.items() if all(p is not None and len(p) >= _MIN_OUTLINE_POINTS for p in o)
+    ]
+    if not both or fps <= 0:
+        return None
+    q_init = max(both, key=lambda q: (min(len(p) for p in pts[q]), -q))
+    circles = [circle_fit(p) for p in pts[q_init]]
+    if any(c is None for c in circles):
+        return None
+    focal = [float(np.sqrt(c.K[0, 0] * c.K[1, 1])) for c in cams]
+
+    def depth(k: int, X: np.ndarray) -> float:
+        return float(cams[k].world_to_camera(X[None])[0, 2])
+
+    X_init = triangulate(cams, [np.array([c[:2]]) for c in circles])[0]
+    if not np.all(np.isfinite(X_init)) or min(depth(k, X_init) for k in (0, 1)) <= 0:
+        return None
+    R_init = float(np.mean([circles[k][2] * depth(k, X_init) / focal[k] for k in (0, 1)]))
+    qs = sorted(pts)
+    q0 = float(np.mean(qs))
+    terms = [(q, k, p) for q in qs for k, p in enumerate(pts[q]) if p is not None and len(p)]
+
+    def resid(x: np.ndarray) -> np.ndarray:
+        out = []
+        for q, k, p in terms:
+            X = x[:3] + x[3:6] * (q - q0) / fps
+            c = cams[k].project(X[None], distort=False)[0]
+            out.append(np.linalg.norm(p - c, axis=1) - focal[k] * x[6] / max(depth(k, X), 1e-9))
+        out.append(x[3:6] / _SPHERE_SPEED_SCALE)  # the weak prior: pixels per m/s
+        return np.concatenate(out)
+
+    span = max(qs[-1] - qs[0], 1)
+    scale = np.r_[np.full(3, R_init), np.full(3, R_init * fps / span), R_init]
+    x0 = np.r_[X_init, np.zeros(3), R_init]
+    fit = least_squares(resid, x0, x_scale=np.maximum(scale, 1e-9), loss="soft_l1", f_scale=1.0)
+    X, V, R = fit.x[:3], fit.x[3:6], float(fit.x[6])
+    if not fit.success or not np.all(np.isfinite(fit.x)) or not R > 0:
+        return None
+    return X, V, R, q0
+
+
+def sphere_track_centres(
+    table: pd.DataFrame,
+    cameras: Sequence[Camera],
+    labels: Sequence[np.ndarray],
+    outline: Callable[[int, int, int], tuple[np.ndarray, float] | None],
+    frames: np.ndarray,
+    fps: float,
+    window_s: float = ANCHOR_DEFAULTS["continue_s"],
+    max_rms: float = ANCHOR_DEFAULTS["max_sphere_rms"],
+    min_visible: float = ANCHOR_DEFAULTS["min_visible_sphere"],
+) -> pd.DataFrame:
+    """Centres of bubbles the border cuts in frames where they have none, from the
+    moving sphere of their outlines (:func:`moving_sphere`): :data:`ANCHOR_COLUMNS`
+    rows plus ``visible``, as :func:`continued_centres`'.
+
+    For each id and each run of consecutive frame positions where the id is cut by a
+    view's border (:func:`border_ids`) and ``table`` has no consistent centre of it,
+    the sphere is fitted to the id's visible outlines (``outline(q, view, id)``) of the
+    run and of the frames within ``window_s`` seconds before and after it where the
+    border cuts it too. A frame of the run gets the sphere's centre where the test of
+    :func:`continued_centres` holds (a view shows pixels of the id, the sphere's image
+    reaches into both frames and holds them), every outline of the frame lies on its
+    circle (rms radial distance at most ``max_rms`` of the radius), as do those of
+    every fitted frame that both views see, and the view that shows most of it covers
+    at least ``min_visible`` of its circle with pixels of the id (no sphere grown
+    round a border fragment).
+
+    Args:
+        table: the anchors so far (with ``consistent``; continued rows included).
+        cameras: the two views' undistorted cameras of ``labels``' grids.
+        labels: per view, (T, H, W) int labels.
+        outline: ``(position, view, id) → (points, cover)`` or None
+            (:func:`visible_outline` of that frame).
+        frames: (T,) session frame index of each position.
+        fps: frames per second.
+        window_s: seconds of cut frames with centres fitted with a run, each side.
+        max_rms: largest rms radial distance of an outline to its circle, over the
+            circle's radius.
+        min_visible: least share of its circle that the view showing most of the
+            sphere covers with pixels.
+
+    Returns:
+        the new rows (``reproj_px`` 0, ``size_ratio`` 1, ``cut`` and ``consistent``
+        True), in frame order.
+    """
+    cols = [*ANCHOR_COLUMNS, "visible"]
+    cams = list(cameras)[:2]
+    frames = np.asarray(frames, np.int64)
+    if fps <= 0 or len(frames) == 0:
+        return pd.DataFrame(columns=cols)
+    pos = {int(f): k for k, f in enumerate(frames)}
+    good = table[table["consistent"].astype(bool) & (table["bubble"] >= 1)]
+    taken = {(pos[int(f)], int(b)) for f, b in zip(good["frame"], good["bubble"], strict=True)}
+    cut_at: dict[int, list[int]] = {}
+    for q in range(len(frames)):
+        ids = set().union(*(border_ids(np.asarray(lab[q])) for lab in labels))
+        for b in sorted(i for i in ids if i >= 1):
+            cut_at.setdefault(b, []).append(q)
+    span = int(np.floor(window_s * fps + 1e-9))
+
+    def rms_ok(X: np.ndarray, R: float, o: Sequence) -> bool:
+        for k, p in enumerate(o):
+            circle = sphere_image(cams[k], X, R) if p is not None and len(p) else None
+            if circle is not None:
+                u, v, rho = circle
+                res = np.hypot(p[:, 0] - u, p[:, 1] - v) - rho
+                if float(np.sqrt(np.mean(res**2))) > max_rms * rho:
+                    return False
+        return True
+
+    rows = []
+    for b, qs in cut_at.items():
+        missing = [q for q in qs if (q, b) not in taken]
+        if not missing:
+            continue
+        starts = np.flatnonzero(np.r_[True, np.diff(missing) != 1])
+        ends = np.r_[starts[1:], len(missing)] - 1
+        for a, e in zip(starts, ends, strict=True):
+            run = missing[a : e + 1]
+            near = [q for q in qs if run[0] - span <= q <= run[-1] + span]
+            outl = {}
+            for q in near:
+                o = [outline(q, k, b) for k in (0, 1)]
+                outl[q] = [None if x is None else np.asarray(x[0], np.float64) for x in o]
+            fit = moving_sphere(cams, outl, fps)
+            if fit is None:
+                continue
+            X0, V, R, q0 = fit
+            where = {q: X0 + V * (q - q0) / fps for q in near}
+            seen_both = [q for q in near if all(p is not None and len(p) for p in outl[q])]
+            if not all(rms_ok(where[q], R, outl[q]) for q in seen_both):
+                continue
+            for q in run:
+                X = where[q]
+                share = _continued_row(X, R, b, q, cams, labels)
+                if share is None or not rms_ok(X, R, outl[q]):
+                    continue
+                if (
+                    max(
+                        _pixel_share(cam, X, R, lab[q], b)
+                        for cam, lab in zip(cams, labels, strict=True)
+                    )
+                    < min_visible
+                ):
+                    continue
+                taken.add((q, b))
+                rows.append((int(frames[q]), b, *map(float, X), 0.0, 1.0, R, True, True, share))
+    out = pd.DataFrame(rows, columns=cols)
+    return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)

@@ -203,6 +203,13 @@ ANCHOR_DEFAULTS: dict = {
     # both views see it; a continued centre is reported without a velocity (its
     # ``visible`` share is under fit: track_min_visible). 0: never.
     "continue_s": 0.002,
+    # A bubble the border cuts in frames where it still has no centre (one that no
+    # frame shows whole in either view, or whose sliver in one view is lost) gets one
+    # there from the sphere moving at a constant velocity that its visible outlines in
+    # both views lie on over those frames and the cut frames within continue_s of them
+    # (sphere_track_centres; each outline within max_sphere_rms of its circle), under
+    # continue_s's test, reported without a velocity like a continued centre. False: never.
+    "sphere_track": True,
     # Two or three bubbles that one view sees apart, whole, and the other fuses into one
     # silhouette (one in front of another): their spheres on the first view's rays fitted
     # to the fused outline's arcs give their centres there (occluded_centres; rms at most

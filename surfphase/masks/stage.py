@@ -318,6 +318,16 @@ def frame_anchors(
             more["low"], more["continued"] = False, True
             table = pd.concat([table, more[table.columns]], ignore_index=True)
             table = table.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
+    if fps and ap["sphere_track"] and len(names) == 2:
+        more = anchors.sphere_track_centres(
+            table, cams, [labels[c] for c in names], _outline_reader(stacks, labels, backgrounds, params),
+            frames, float(fps), float(ap["continue_s"]), float(ap["max_sphere_rms"]),
+            float(ap["min_visible_sphere"]),
+        )  # fmt: skip
+        if len(more):
+            more["low"], more["continued"] = False, True
+            table = pd.concat([table, more[table.columns]], ignore_index=True)
+            table = table.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
     table.attrs["split"] = split
     return table
 
@@ -624,21 +634,10 @@ def sphere_cut_centres(
       circles moved to the other frames as above.
     """
     names = list(stacks)[:2]
-    cp, ap = params["classical"], params["anchors"]
-    ring = int(ap["ring_px"])
+    ap = params["anchors"]
     lo, rms_max = float(ap["min_visible_sphere"]), float(ap["max_sphere_rms"])
     n = stacks[names[0]].shape[0]
-    cache: dict[int, tuple] = {}
-
-    def outline(t: int, k: int, b: int):
-        if t not in cache:
-            if len(cache) > 8:
-                cache.clear()
-            labs = [np.asarray(labels[c][t]) for c in names]
-            cons = [classical.relative_contrast(stacks[c][t], cp, backgrounds[c]) for c in names]
-            cache[t] = (labs, cons, [anchors.region_owners(lab, ring) for lab in labs])
-        labs, cons, owners = cache[t]
-        return anchors.visible_outline(cons[k], labs[k], owners[k], b, ring)
+    outline = _outline_reader(stacks, labels, backgrounds, params)
 
     # What each view misses: bubble -> frame positions (seen by both, cut in this view).
     missing: list[dict[int, list[int]]] = [{}, {}]
@@ -691,6 +690,33 @@ def sphere_cut_centres(
                     rest = [f for f in ts if b not in cents[k][f]]
                     _register_frames(k, b, rest, [t], cents, cuts, outline, lo, rms_max)
                 break
+
+
+def _outline_reader(
+    stacks: Mapping[str, np.ndarray],
+    labels: Mapping[str, np.ndarray],
+    backgrounds: Mapping[str, tuple],
+    params: Mapping,
+) -> Callable[[int, int, int], tuple[np.ndarray, float] | None]:
+    """``outline(t, k, b)``: the visible outline of id ``b`` in the first two views'
+    view ``k`` at frame position ``t``
+    (:func:`surfphase.masks.anchors.visible_outline`: ``(points, cover)`` or None),
+    each frame's contrast and region owners computed once for the last few frames."""
+    names = list(stacks)[:2]
+    cp, ring = params["classical"], int(params["anchors"]["ring_px"])
+    cache: dict[int, tuple] = {}
+
+    def outline(t: int, k: int, b: int):
+        if t not in cache:
+            if len(cache) > 8:
+                cache.clear()
+            labs = [np.asarray(labels[c][t]) for c in names]
+            cons = [classical.relative_contrast(stacks[c][t], cp, backgrounds[c]) for c in names]
+            cache[t] = (labs, cons, [anchors.region_owners(lab, ring) for lab in labs])
+        labs, cons, owners = cache[t]
+        return anchors.visible_outline(cons[k], labs[k], owners[k], b, ring)
+
+    return outline
 
 
 def _set_centres(cents, cuts, t: int, b: int, fit, known) -> None:
