@@ -121,7 +121,7 @@ def method_track_table(
         min_track_frames = int(DEFAULTS["min_track_frames"])
     return anchored_table(
         table, anchors, nuc, window_s, order, min_track_frames, len(frames), rules,
-        float(DEFAULTS["track_min_visible"]),
+        float(DEFAULTS["track_min_visible"]), int(DEFAULTS["track_gap_frames"]),
     )  # fmt: skip
 
 

@@ -278,6 +278,7 @@ def anchored_table(
     n_frames: int | None = None,
     rules: tuple = (),
     min_visible: float = 0.0,
+    gap_frames: int = 0,
 ) -> pd.DataFrame:
     """``bubbles.csv`` with each bubble's centre from its triangulated silhouettes.
 
@@ -298,7 +299,12 @@ def anchored_table(
     centre, so differences of such centres are no velocity, and a track through them
     would show a user who differentiates it another velocity than the one reported
     beside them. A run with fewer than :data:`WEAK_MIN_SURE` other rows keeps its
-    centres as measured and has no velocity at all.
+    centres as measured and has no velocity at all. Up to ``gap_frames`` consecutive
+    frames missing between two centres of one id (a frame where its two views
+    disagreed) are filled (:func:`_gap_rows`): placed on that parabola, then smoothed
+    with the run they join as if measured, and reported without a velocity. A bubble is
+    not cut in two tracks, nor its short end dropped by ``min_track_frames``, for one
+    bad frame.
 
     Args:
         table: :func:`bubble_table` without smoothing.
@@ -307,6 +313,7 @@ def anchored_table(
         track_window_s, track_order: as ``fit: track_window_s``, ``track_order``.
         rules: :func:`smooth_tracks`' further arguments (:func:`track_rules`).
         min_visible: as ``fit: track_min_visible``.
+        gap_frames: as ``fit: track_gap_frames`` (needs the anchors' ``visible``).
     """
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
     nuc = table[(table["bubble"] == 0) & table["frame"].isin(sorted(nucleation_frames))]
@@ -319,12 +326,23 @@ def anchored_table(
         bub = pd.concat([bub, _continued_rows(table, anchors, bub, a)], ignore_index=True)
     if not low:
         bub["low"], bub["reproj_px"] = False, 0.0
+    if vis and gap_frames > 0:
+        bub = pd.concat([bub, _gap_rows(table, bub, int(gap_frames))], ignore_index=True)
     bub = bub.sort_values(["bubble", "frame"], kind="stable").reset_index(drop=True)
     seg = _runs(bub)
     need = int(min_track_frames) if n_frames is None else min(int(min_track_frames), n_frames)
     keep = np.bincount(seg)[seg] >= need
     bub = bub[keep].reset_index(drop=True)
     bub[vel] = np.nan
+    gap = ~np.isfinite(bub["x"].to_numpy(np.float64))  # _gap_rows
+    if gap.any():
+        # Placed first, then smoothed with their run as if measured: the run stays
+        # uniformly sampled; a run too short to place them by loses them.
+        seg = _runs(bub)
+        sure = np.bincount(seg, weights=~gap, minlength=seg.max() + 1)[seg]
+        bub = bub[~gap | (sure >= WEAK_MIN_SURE)].reset_index(drop=True)
+        gap = ~np.isfinite(bub["x"].to_numpy(np.float64))
+        place_on_parabola(bub, _runs(bub), gap, _reach(rules, track_window_s) or np.inf, True)
     weak = np.zeros(len(bub), bool)
     if vis:
         weak = bub["visible"].to_numpy(np.float64) < float(min_visible)
@@ -342,6 +360,7 @@ def anchored_table(
         place_on_parabola(bub, seg, weak & ~measured, reach, velocity=False)
     else:
         _track_velocities(bub, _runs(bub), track_window_s, track_order, rules)
+    bub.loc[gap, vel] = np.nan  # not measured: no velocity
     out = pd.concat([nuc, bub[table.columns]], ignore_index=True)
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 
@@ -366,6 +385,47 @@ def _continued_rows(
     for c in bub.columns:
         if c not in out.columns:
             out[c] = 0 if c == "n_surfels" else np.nan
+    return out[bub.columns]
+
+
+#: A gap in a track is filled only between centres whose views agree to within this
+#: many pixels (``reproj_px``; the classical baseline's own test of a centre off the
+#: epipolar geometry, :data:`surfphase.eval.baseline.MAX_REPROJ_PX`): a gap where a
+#: pairing goes bad (its centres drifting 0.3-0.5 r_eq off over the frames before,
+#: disagreeing by 1-3 px) would join a bad run to a good one.
+GAP_MAX_REPROJ_PX = 0.75
+
+
+def _gap_rows(table: pd.DataFrame, bub: pd.DataFrame, gap_frames: int) -> pd.DataFrame:
+    """:func:`anchored_table`'s rows for the frames, at most ``gap_frames`` in a row,
+    missing between two rows of one id in ``bub`` whose centres are both sound
+    (``reproj_px`` at most :data:`GAP_MAX_REPROJ_PX`): no centre yet (NaN; the run's
+    parabola places it), ``visible`` 1 and ``low`` False (smoothed with its run), no
+    velocity; ``time_s`` and ``n_surfels`` from ``table``'s row of that frame and id,
+    else from the table's uniform sampling and 0."""
+    f = bub["frame"].to_numpy(np.int64)
+    b = bub["bubble"].to_numpy(np.int64)
+    order = np.lexsort((f, b))
+    f, b = f[order], b[order]
+    rep = bub["reproj_px"].to_numpy(np.float64)[order]
+    step = np.diff(f)
+    sound = (rep[:-1] <= GAP_MAX_REPROJ_PX) & (rep[1:] <= GAP_MAX_REPROJ_PX)
+    at = np.flatnonzero((b[1:] == b[:-1]) & (step > 1) & (step <= gap_frames + 1) & sound)
+    missing = [(int(f[i]) + k, int(b[i])) for i in at for k in range(1, int(step[i]))]
+    ft = table.drop_duplicates("frame")[["frame", "time_s"]].to_numpy(np.float64)
+    if not missing or len(ft) < 2:
+        return bub.iloc[:0]
+    slope, icpt = np.polyfit(ft[:, 0], ft[:, 1], 1)
+    out = pd.DataFrame(missing, columns=["frame", "bubble"])
+    have = table.drop_duplicates(["frame", "bubble"]).set_index(["frame", "bubble"])
+    key = pd.MultiIndex.from_frame(out)
+    out["time_s"] = icpt + slope * out["frame"].to_numpy(np.float64)
+    if "n_surfels" in bub.columns:
+        out["n_surfels"] = have["n_surfels"].reindex(key).fillna(0).to_numpy().astype(int)
+    out["visible"], out["low"], out["reproj_px"] = 1.0, False, 0.0
+    for c in bub.columns:
+        if c not in out.columns:
+            out[c] = np.nan
     return out[bub.columns]
 
 
@@ -743,6 +803,7 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
             F,
             rules,
             float(p["track_min_visible"]),
+            int(p["track_gap_frames"]),
         )
     else:
         table = bubble_table(

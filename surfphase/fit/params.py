@@ -106,6 +106,12 @@ DEFAULTS: dict = {
     # off, from 25-60 % inside 4-5 %, whole 2.6 %), so a track through it would differ
     # from the velocities beside it. 0: every centre counts.
     "track_min_visible": 0.25,
+    # Up to this many consecutive frames missing between two centres of one bubble (a
+    # frame where its two views disagreed, so the mask stage gave it no centre) are
+    # reported all the same, placed like those centres (no velocity), and the track runs
+    # through them: one bad frame no longer cuts a track in two, nor drops its short end
+    # (min_track_frames). 0: a gap ends the track.
+    "track_gap_frames": 1,
     "track_window_s": 0.003,  # > 0: centroids and velocities of each bubble track from a
     # moving polynomial over this many seconds (Savitzky-Golay; 0: per-frame values)
     "track_order": 1,  # polynomial order of that fit

@@ -352,7 +352,8 @@ def sphere_shapes(
     (centre's projection, radius f·r / depth), where the visible part fits inside it
     (at most 2 % of its pixels outside); and of those with a sphere that have no pixels
     in ``lab`` while their circle reaches into the frame (a bubble leaving it, whose
-    sliver the view's labels no longer hold: ``masks: anchors: continue_s``)."""
+    sliver the view's labels no longer hold: ``masks: anchors: continue_s``,
+    ``sphere_track``)."""
     from surfphase.masks.anchors import border_ids, disc_in_frame, sphere_image
 
     out: dict[int, tuple] = {}
