@@ -251,8 +251,10 @@ def frame_anchors(
     centroid of their silhouette's solid of revolution
     (:func:`surfphase.masks.anchors.lobe_centroids`). A bubble leaving or entering the
     frame past its last or first centre has it continued along its track
-    (:func:`surfphase.masks.anchors.continued_centres`, ``continue_s``; with ``fps``):
-    those rows have ``continued`` True."""
+    (:func:`surfphase.masks.anchors.continued_centres`, ``continue_s``; with ``fps``),
+    and one the border cuts where it still has none gets the centre of the moving sphere
+    of its outlines (:func:`surfphase.masks.anchors.sphere_track_centres`,
+    ``sphere_track``): those rows have ``continued`` True."""
     names = list(stacks)[:2]
     cp, ap = params["classical"], params["anchors"]
     cents, cuts = [], []
@@ -314,22 +316,26 @@ def frame_anchors(
         more = anchors.continued_centres(
             table, cams, [labels[c] for c in names], frames, float(fps), float(ap["continue_s"])
         )
-        if len(more):
-            more["low"], more["continued"] = False, True
-            table = pd.concat([table, more[table.columns]], ignore_index=True)
-            table = table.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
+        table = _with_continued(table, more)
     if fps and ap["sphere_track"] and len(names) == 2:
         more = anchors.sphere_track_centres(
             table, cams, [labels[c] for c in names], _outline_reader(stacks, labels, backgrounds, params),
             frames, float(fps), float(ap["continue_s"]), float(ap["max_sphere_rms"]),
             float(ap["min_visible_sphere"]),
         )  # fmt: skip
-        if len(more):
-            more["low"], more["continued"] = False, True
-            table = pd.concat([table, more[table.columns]], ignore_index=True)
-            table = table.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
+        table = _with_continued(table, more)
     table.attrs["split"] = split
     return table
+
+
+def _with_continued(table: pd.DataFrame, more: pd.DataFrame) -> pd.DataFrame:
+    """``table`` with the rows ``more`` (continued centres: ``low`` False, ``continued``
+    True), in frame then bubble order."""
+    if not len(more):
+        return table
+    more = more.assign(low=False, continued=True)
+    table = pd.concat([table, more[table.columns]], ignore_index=True)
+    return table.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 
 
 def _epipolar_hits(cam_u, cam_v, centre: tuple, lab: np.ndarray, reach: float = 4.0) -> set[int]:
