@@ -271,6 +271,40 @@ def test_a_leaving_bubble_whose_sliver_the_labels_lost_gets_the_image_of_its_sph
     assert abs(_hull_volume([grown_cam, cams[1]], [grown, labels[1]], p, 3) / ref - 1) < 0.04
     gone = cams[0].cropped(int(cols[-1] + 2), 0, 20, cams[0].height)
     assert sphere_shapes(gone, np.full((gone.height, 20), -1), {3: SPHERES[3]}, set()) == {}
+    # Sphere 5's image ends 0.011 px inside a frame of its first 60 columns: no pixel
+    # centre in it (the mask stage saw it at a finer grid), yet it is drawn.
+    from surfphase.masks.anchors import disc_in_frame, sphere_image
+
+    edge = cams[0].cropped(0, 0, 60, cams[0].height)
+    u, v, rho = sphere_image(edge, *SPHERES[5])
+    assert 59.4 < u - rho < 59.5 and disc_in_frame(u, v, rho, (edge.height, 60)) == 0
+    got = sphere_shapes(edge, np.full((edge.height, 60), -1), {5: SPHERES[5]}, set())
+    np.testing.assert_allclose(got[5], (u, v, rho, rho, 0.0), rtol=1e-12)
+
+
+def test_a_circle_meets_the_frame_where_it_overlaps_its_pixels_area():
+    """:func:`circle_meets_frame` against brute force: 400 random circles around a
+    7×5 image, each sampled on a 0.02 px grid of its disc for a point within the
+    pixels' area (−0.5 to W − 0.5, H − 0.5); circles within 0.04 px of touching it
+    are left out."""
+    from surfphase.masks.anchors import circle_meets_frame
+
+    rng = np.random.default_rng(3)
+    h, w = 5, 7
+    checked = 0
+    for _ in range(400):
+        u, v, rho = rng.uniform(-5, 11), rng.uniform(-5, 9), rng.uniform(0.2, 3)
+        du = u - np.clip(u, -0.5, w - 0.5)
+        dv = v - np.clip(v, -0.5, h - 0.5)
+        if abs(np.hypot(du, dv) - rho) < 0.04:
+            continue
+        g = np.arange(-rho, rho + 1e-9, 0.02)
+        x, y = np.meshgrid(u + g, v + g)
+        disc = np.hypot(x - u, y - v) <= rho
+        inside = (x >= -0.5) & (x <= w - 0.5) & (y >= -0.5) & (y <= h - 0.5)
+        assert circle_meets_frame(u, v, rho, (h, w)) == bool((disc & inside).any())
+        checked += 1
+    assert checked > 380
 
 
 def test_an_oblate_bubble_cut_at_the_top_takes_its_sphere_before_a_fitted_circle():

@@ -1101,6 +1101,16 @@ def disc_in_frame(u: float, v: float, rho: float, shape: tuple[int, int]) -> flo
     return float(np.count_nonzero(np.hypot(uu - u, vv - v) <= rho))
 
 
+def circle_meets_frame(u: float, v: float, rho: float, shape: tuple[int, int]) -> bool:
+    """Whether the circle of centre ``(u, v)`` and radius ``rho`` (pixels) overlaps an
+    image of ``shape`` (H, W): its pixels' area, from −0.5 to W − 0.5 and H − 0.5
+    (pixel centres at integers), not only their centres (:func:`disc_in_frame`)."""
+    h, w = int(shape[0]), int(shape[1])
+    du = u - float(np.clip(u, -0.5, w - 0.5))
+    dv = v - float(np.clip(v, -0.5, h - 0.5))
+    return bool(np.hypot(du, dv) < rho)
+
+
 def continued_centres(
     table: pd.DataFrame,
     cameras: Sequence[Camera],
