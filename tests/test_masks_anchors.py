@@ -1012,6 +1012,15 @@ def _leaving_sphere(fps: float, n: int):
     return (c0, c1), X, r, labs
 
 
+def _leaving_anchors(X: np.ndarray, r: float) -> pd.DataFrame:
+    """:func:`_leaving_sphere`'s consistent centres of frames 0-7, cut from frame 3."""
+    return pd.DataFrame(
+        [(f, 4, *X[f], 0.0, 1.0, r, f >= 3, True) for f in range(8)],
+        columns=["frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "r_m", "cut",
+                 "consistent"],
+    )  # fmt: skip
+
+
 def test_a_leaving_bubble_is_continued_along_its_track_while_both_views_see_it():
     """A sphere leaving the top of both views whose centres stop while slivers still
     show (here: after frame 7): its centre continues the line of its last centres
@@ -1023,11 +1032,7 @@ def test_a_leaving_bubble_is_continued_along_its_track_while_both_views_see_it()
 
     fps, n = 5000.0, 40
     cams, X, r, labs = _leaving_sphere(fps, n)
-    anchors = pd.DataFrame(
-        [(f, 4, *X[f], 0.0, 1.0, r, f >= 3, True) for f in range(8)],
-        columns=["frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "r_m", "cut",
-                 "consistent"],
-    )  # fmt: skip
+    anchors = _leaving_anchors(X, r)
     frames = np.arange(n)
 
     def seen(f: int) -> bool:  # pixels in a view, and the circle reaches both frames
@@ -1122,18 +1127,14 @@ def test_a_bubble_whose_sliver_one_view_loses_gets_centres_from_its_moving_spher
     lost from frame 10 on (a sliver under the segmenter's smallest area), the line
     continuation off: the cut frames after it get the moving sphere's centres
     (analytic truth to within 2 % of the radius) while view 0 shows at least 5 % of its
-    circle and its sphere's image reaches into both frames; a frame whose outline lies off the sphere's circle
-    (moved 6 px in view 0) gets none."""
+    circle and its sphere's image reaches into both frames; a frame whose outline lies
+    off the sphere's circle (moved 6 px in view 0) gets none."""
     from surfphase.masks.anchors import sphere_track_centres
 
     fps, n = 5000.0, 40
     cams, X, r, labs = _leaving_sphere(fps, n)
     labs[1][10:] = -1
-    anchors = pd.DataFrame(
-        [(f, 4, *X[f], 0.0, 1.0, r, f >= 3, True) for f in range(8)],
-        columns=["frame", "bubble", "x", "y", "z", "reproj_px", "size_ratio", "r_m", "cut",
-                 "consistent"],
-    )  # fmt: skip
+    anchors = _leaving_anchors(X, r)
     frames = np.arange(n)
 
     def seen(f: int) -> bool:

@@ -318,10 +318,10 @@ def frame_anchors(
         )
         table = _with_continued(table, more)
     if fps and ap["sphere_track"] and len(names) == 2:
+        outline = _outline_reader(stacks, labels, backgrounds, params)
         more = anchors.sphere_track_centres(
-            table, cams, [labels[c] for c in names], _outline_reader(stacks, labels, backgrounds, params),
-            frames, float(fps), float(ap["continue_s"]), float(ap["max_sphere_rms"]),
-            float(ap["min_visible_sphere"]),
+            table, cams, [labels[c] for c in names], outline, frames, float(fps),
+            float(ap["continue_s"]), float(ap["max_sphere_rms"]), float(ap["min_visible_sphere"]),
         )  # fmt: skip
         table = _with_continued(table, more)
     table.attrs["split"] = split
