@@ -401,8 +401,8 @@ def _gap_rows(table: pd.DataFrame, bub: pd.DataFrame, gap_frames: int) -> pd.Dat
     missing between two rows of one id in ``bub`` whose centres are both sound
     (``reproj_px`` at most :data:`GAP_MAX_REPROJ_PX`): no centre yet (NaN; the run's
     parabola places it), ``visible`` 1 and ``low`` False (smoothed with its run), no
-    velocity; ``time_s`` and ``n_surfels`` from ``table``'s row of that frame and id,
-    else from the table's uniform sampling and 0."""
+    velocity; ``time_s`` from the table's uniform sampling, ``n_surfels`` from its row
+    of that frame and id (0 without one)."""
     f = bub["frame"].to_numpy(np.int64)
     b = bub["bubble"].to_numpy(np.int64)
     order = np.lexsort((f, b))
