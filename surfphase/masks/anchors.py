@@ -1288,15 +1288,20 @@ def moving_sphere(
     qs = sorted(pts)
     q0 = float(np.mean(qs))
     terms = [(q, k, p) for q in qs for k, p in enumerate(pts[q]) if p is not None and len(p)]
+    P = np.concatenate([p for _, _, p in terms])  # (N, 2) every outline point, its
+    K = np.concatenate([np.full(len(p), k) for _, k, p in terms])  # view
+    dq = np.concatenate([np.full(len(p), q - q0) for q, _, p in terms])  # and time
+    f_of = np.asarray(focal)[K]
 
     def resid(x: np.ndarray) -> np.ndarray:
-        out = []
-        for q, k, p in terms:
-            X = x[:3] + x[3:6] * (q - q0) / fps
-            c = cams[k].project(X[None], distort=False)[0]
-            out.append(np.linalg.norm(p - c, axis=1) - focal[k] * x[6] / max(depth(k, X), 1e-9))
-        out.append(x[3:6] / _SPHERE_SPEED_SCALE)  # the weak prior: pixels per m/s
-        return np.concatenate(out)
+        X = x[:3] + x[3:6][None] * dq[:, None] / fps  # (N, 3) the centre at each point's frame
+        c, z = np.empty((len(P), 2)), np.empty(len(P))
+        for k in (0, 1):
+            m = K == k
+            c[m] = cams[k].project(X[m], distort=False)
+            z[m] = cams[k].world_to_camera(X[m])[:, 2]
+        r = np.linalg.norm(P - c, axis=1) - f_of * x[6] / np.maximum(z, 1e-9)
+        return np.r_[r, x[3:6] / _SPHERE_SPEED_SCALE]  # the weak prior: pixels per m/s
 
     span = max(qs[-1] - qs[0], 1)
     scale = np.r_[np.full(3, R_init), np.full(3, R_init * fps / span), R_init]
