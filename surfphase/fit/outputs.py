@@ -376,16 +376,25 @@ def _continued_rows(
     rows = a[anchors.loc[a.index, "continued"].astype(bool).to_numpy()]
     have = bub.set_index(["frame", "bubble"]).index
     rows = rows[~rows.set_index(["frame", "bubble"]).index.isin(have)]
-    ft = table.drop_duplicates("frame")[["frame", "time_s"]].to_numpy(np.float64)
-    if not len(rows) or len(ft) < 2:
+    times = _frame_times(table, rows["frame"].to_numpy())
+    if not len(rows) or times is None:
         return bub.iloc[:0]
-    slope, icpt = np.polyfit(ft[:, 0], ft[:, 1], 1)
     out = rows.copy()
-    out["time_s"] = icpt + slope * out["frame"].to_numpy(np.float64)
+    out["time_s"] = times
     for c in bub.columns:
         if c not in out.columns:
             out[c] = 0 if c == "n_surfels" else np.nan
     return out[bub.columns]
+
+
+def _frame_times(table: pd.DataFrame, frames: np.ndarray) -> np.ndarray | None:
+    """(n,) times (s) of session ``frames`` from the table's uniform sampling (the line
+    through its frames' ``time_s``); None where it has fewer than two frames."""
+    ft = table.drop_duplicates("frame")[["frame", "time_s"]].to_numpy(np.float64)
+    if len(ft) < 2:
+        return None
+    slope, icpt = np.polyfit(ft[:, 0], ft[:, 1], 1)
+    return icpt + slope * np.asarray(frames, np.float64)
 
 
 #: A gap in a track is filled only between centres whose views agree to within this
@@ -412,14 +421,13 @@ def _gap_rows(table: pd.DataFrame, bub: pd.DataFrame, gap_frames: int) -> pd.Dat
     sound = (rep[:-1] <= GAP_MAX_REPROJ_PX) & (rep[1:] <= GAP_MAX_REPROJ_PX)
     at = np.flatnonzero((b[1:] == b[:-1]) & (step > 1) & (step <= gap_frames + 1) & sound)
     missing = [(int(f[i]) + k, int(b[i])) for i in at for k in range(1, int(step[i]))]
-    ft = table.drop_duplicates("frame")[["frame", "time_s"]].to_numpy(np.float64)
-    if not missing or len(ft) < 2:
-        return bub.iloc[:0]
-    slope, icpt = np.polyfit(ft[:, 0], ft[:, 1], 1)
     out = pd.DataFrame(missing, columns=["frame", "bubble"])
+    times = _frame_times(table, out["frame"].to_numpy())
+    if not missing or times is None:
+        return bub.iloc[:0]
     have = table.drop_duplicates(["frame", "bubble"]).set_index(["frame", "bubble"])
     key = pd.MultiIndex.from_frame(out)
-    out["time_s"] = icpt + slope * out["frame"].to_numpy(np.float64)
+    out["time_s"] = times
     if "n_surfels" in bub.columns:
         out["n_surfels"] = have["n_surfels"].reindex(key).fillna(0).to_numpy().astype(int)
     out["visible"], out["low"], out["reproj_px"] = 1.0, False, 0.0

@@ -1184,34 +1184,27 @@ def continued_centres(
                     if q < 0 or q >= n or (q, b) in taken:
                         break
                     c = coef[0] * (q / fps - t.mean()) + coef[1]
-                    row = _continued_row(c, R, b, q, cams, labels)
-                    if row is None:
+                    shares = _continued_shares(c, R, b, q, cams, labels)
+                    if shares is None:
                         break
                     taken.add((q, b))
-                    rows.append((int(frames[q]), b, *map(float, c), 0.0, 1.0, R, True, True, row))
+                    share = min(min(shares), 1.0)
+                    rows.append((int(frames[q]), b, *map(float, c), 0.0, 1.0, R, True, True, share))
     out = pd.DataFrame(rows, columns=cols)
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 
 
-def _pixel_share(cam: Camera, X: np.ndarray, R: float, lab: np.ndarray, b: int) -> float:
-    """The pixels of id ``b`` in one view's (H, W) labels over the area (pixels²) of
-    the image circle of the sphere ``(X, R)`` (:func:`sphere_image`); 0 behind it."""
-    circle = sphere_image(cam, X, R)
-    if circle is None:
-        return 0.0
-    return float(np.count_nonzero(np.asarray(lab) == b)) / (np.pi * circle[2] ** 2)
-
-
-def _continued_row(
+def _continued_shares(
     X: np.ndarray,
     R: float,
     b: int,
     q: int,
     cams: Sequence[Camera],
     labels: Sequence[np.ndarray],
-) -> float | None:
+) -> list[float] | None:
     """:func:`continued_centres`' test of the sphere ``(X, R)`` of id ``b`` at position
-    ``q``: its ``visible`` share, or None where it fails."""
+    ``q``: per view, the pixels of the id over the area of the sphere's image circle
+    (its ``visible`` share is the least of them, at most 1), or None where it fails."""
     shares, present = [], False
     for cam, lab in zip(cams, labels, strict=True):
         circle = sphere_image(cam, X, R)
@@ -1227,7 +1220,7 @@ def _continued_row(
             if np.mean(np.hypot(xs - u, ys - v) > 1.1 * rho + 1.0) > 0.1:
                 return None
         shares.append(len(ys) / (np.pi * rho * rho))
-    return float(min(min(shares), 1.0)) if present else None
+    return shares if present else None
 
 
 def moving_sphere(
@@ -1292,12 +1285,12 @@ def moving_sphere(
     K = np.concatenate([np.full(len(p), k) for _, k, p in terms])  # view
     dq = np.concatenate([np.full(len(p), q - q0) for q, _, p in terms])  # and time
     f_of = np.asarray(focal)[K]
+    in_view = [K == k for k in (0, 1)]
 
     def resid(x: np.ndarray) -> np.ndarray:
         X = x[:3] + x[3:6][None] * dq[:, None] / fps  # (N, 3) the centre at each point's frame
         c, z = np.empty((len(P), 2)), np.empty(len(P))
-        for k in (0, 1):
-            m = K == k
+        for k, m in enumerate(in_view):
             c[m] = cams[k].project(X[m], distort=False)
             z[m] = cams[k].world_to_camera(X[m])[:, 2]
         r = np.linalg.norm(P - c, axis=1) - f_of * x[6] / np.maximum(z, 1e-9)
@@ -1407,18 +1400,11 @@ def sphere_track_centres(
                 continue
             for q in run:
                 X = where[q]
-                share = _continued_row(X, R, b, q, cams, labels)
-                if share is None or not rms_ok(X, R, outl[q]):
-                    continue
-                if (
-                    max(
-                        _pixel_share(cam, X, R, lab[q], b)
-                        for cam, lab in zip(cams, labels, strict=True)
-                    )
-                    < min_visible
-                ):
+                shares = _continued_shares(X, R, b, q, cams, labels)
+                if shares is None or not rms_ok(X, R, outl[q]) or max(shares) < min_visible:
                     continue
                 taken.add((q, b))
+                share = min(min(shares), 1.0)
                 rows.append((int(frames[q]), b, *map(float, X), 0.0, 1.0, R, True, True, share))
     out = pd.DataFrame(rows, columns=cols)
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
