@@ -22,7 +22,6 @@ from surfphase.masks.anchors import (
     border_ids,
     coverage_centroids,
     cut_centres,
-    disc_in_frame,
     downsample_labels,
     visible_shares,
 )
@@ -222,31 +221,36 @@ def test_anchored_table_reports_triangulated_tracks():
     assert np.abs(run[["vx", "vy", "vz"]].to_numpy(float) - v).max() < 0.01
 
 
-def test_anchored_table_reports_continued_centres_the_fit_has_no_surfels_for():
+def test_anchored_table_reports_centres_the_fit_has_no_surfels_for():
     """A bubble leaving the frame whose continued centres (``continued``) outlast its
     surfels (frames 10-12 here) is reported there all the same, at those centres,
     with no surfels, the session's time of the frame and no velocity (their visible
-    share is under ``min_visible``); a centre not continued needs its surfels, as
-    before."""
+    share is under ``min_visible``); so is a measured centre the fit has no surfels for
+    (bubble 2 at frame 11), with or without the ``continued`` column."""
     frames = np.arange(13)
     v = np.array([0.0, 0.3, 0.0])
     X = np.array([0.0, 0.005, 0.0]) + v * frames[:, None] / 1000.0
     visible = np.r_[np.ones(8), 0.2, 0.1, 0.05, 0.02, 0.0]
     anchors = pd.DataFrame(
         [(f, 1, *X[f], visible[f], f >= 10) for f in frames]
-        + [(11, 2, 0.0, 0.0, 0.0, 1.0, False)],  # not continued, no surfels: left out
+        + [(11, 2, 0.0, 0.0, 0.0, 1.0, False)],  # measured, no surfels
         columns=["frame", "bubble", "x", "y", "z", "visible", "continued"],
     )
     table = _surfel_table(frames[:10], [1])
-    out = anchored_table(table, anchors, set(), 0.0, 1, 3, None, (), 0.25).set_index("frame")
-    assert list(out.index) == list(frames) and set(out["bubble"]) == {1}
-    assert np.allclose(out.loc[10:, "time_s"], frames[10:] / 1000.0)
-    assert (out.loc[10:, "n_surfels"] == 0).all() and (out.loc[:9, "n_surfels"] == 50).all()
-    assert out.loc[8:, ["vx", "vy", "vz"]].isna().all().all()
-    assert np.abs(out.loc[10:, ["x", "y", "z"]].to_numpy(float) - X[10:]).max() < 1e-12
-    # Without the column (anchors written before it), rows need their surfels.
+    out = anchored_table(table, anchors, set(), 0.0, 1, 1, None, (), 0.25)
+    b1 = out[out.bubble == 1].set_index("frame")
+    assert list(b1.index) == list(frames) and set(out["bubble"]) == {1, 2}
+    assert np.allclose(b1.loc[10:, "time_s"], frames[10:] / 1000.0)
+    assert (b1.loc[10:, "n_surfels"] == 0).all() and (b1.loc[:9, "n_surfels"] == 50).all()
+    assert b1.loc[8:, ["vx", "vy", "vz"]].isna().all().all()
+    assert np.abs(b1.loc[10:, ["x", "y", "z"]].to_numpy(float) - X[10:]).max() < 1e-12
+    b2 = out[out.bubble == 2]
+    assert list(b2["frame"]) == [11] and np.isclose(b2["time_s"].iloc[0], 0.011)
+    # A lone frame is still no track: min_track_frames 3 drops bubble 2, keeps bubble 1.
+    three = anchored_table(table, anchors, set(), 0.0, 1, 3, None, (), 0.25)
+    assert set(three["bubble"]) == {1} and len(three) == len(frames)
     old = anchored_table(table, anchors.drop(columns="continued"), set(), 0.0, 1, 3, None, (), 0.25)
-    assert list(old["frame"]) == list(frames[:10])
+    assert old[["frame", "bubble", "x", "y", "z"]].equals(three[["frame", "bubble", "x", "y", "z"]])
 
 
 def test_anchored_table_reports_a_mostly_hidden_centre_without_a_velocity():
@@ -1012,6 +1016,15 @@ def _leaving_sphere(fps: float, n: int):
     return (c0, c1), X, r, labs
 
 
+def _disc_meets(u: float, v: float, rho: float, shape: tuple[int, int]) -> bool:
+    """Brute force: whether a point of the disc (polar samples, 0.002 px apart at most
+    along the rim) lies in the image's pixel area [-0.5, W - 0.5) x [-0.5, H - 0.5)."""
+    s = np.linspace(0.0, 1.0, 201)[:, None]
+    a = np.linspace(0.0, 2.0 * np.pi, max(int(2 * np.pi * rho / 0.002), 16))[None]
+    x, y = u + rho * s * np.cos(a), v + rho * s * np.sin(a)
+    return bool(((x >= -0.5) & (x < shape[1] - 0.5) & (y >= -0.5) & (y < shape[0] - 0.5)).any())
+
+
 def _leaving_anchors(X: np.ndarray, r: float) -> pd.DataFrame:
     """:func:`_leaving_sphere`'s consistent centres of frames 0-7, cut from frame 3."""
     return pd.DataFrame(
@@ -1025,9 +1038,9 @@ def test_a_leaving_bubble_is_continued_along_its_track_while_both_views_see_it()
     """A sphere leaving the top of both views whose centres stop while slivers still
     show (here: after frame 7): its centre continues the line of its last centres
     (analytic truth: straight at constant speed) in each later frame where a view still
-    has its pixels and its circle reaches into both frames, with its radius, for up to
-    ``continue_s``, and no further; a sliver off the continued circle, a run that does
-    not end cut, or ``continue_s`` 0 stops it."""
+    has its pixels and its circle (grown by 0.1 radius + 1 px) reaches into both
+    frames, with its radius, for up to ``continue_s``, and no further; a sliver off the
+    continued circle, a run that does not end cut, or ``continue_s`` 0 stops it."""
     from surfphase.masks.anchors import continued_centres
 
     fps, n = 5000.0, 40
@@ -1041,7 +1054,7 @@ def test_a_leaving_bubble_is_continued_along_its_track_while_both_views_see_it()
         ]
         uv = [c.project(X[f][None], distort=False)[0] for c in cams]
         return any((lab[f] == 4).any() for lab in labs) and all(
-            disc_in_frame(*uv[k], rho[k], (c.height, c.width)) >= 1 for k, c in enumerate(cams)
+            _disc_meets(*uv[k], 1.1 * rho[k] + 1.0, (c.height, c.width)) for k, c in enumerate(cams)
         )
 
     last = next(f for f in range(8, n) if not seen(f))  # the first frame it is not seen
@@ -1146,7 +1159,7 @@ def test_a_bubble_whose_sliver_one_view_loses_gets_centres_from_its_moving_spher
             (lab[f] == 4).sum() / (np.pi * rr**2) for lab, rr in zip(labs, rho, strict=True)
         )
         return shown >= 0.05 and all(
-            disc_in_frame(*uv[k], rho[k], (c.height, c.width)) >= 1 for k, c in enumerate(cams)
+            _disc_meets(*uv[k], 1.1 * rho[k] + 1.0, (c.height, c.width)) for k, c in enumerate(cams)
         )
 
     last = next(f for f in range(8, n) if not seen(f))
@@ -1163,6 +1176,20 @@ def test_a_bubble_whose_sliver_one_view_loses_gets_centres_from_its_moving_spher
     moved = _circle_outlines(cams, X, r, labs, {(11, 0): (6.0, 0.0)})
     out = sphere_track_centres(anchors, cams, labs, moved, frames, fps)
     assert 11 not in set(out["frame"]) and {8, 9, 10, 12} <= set(out["frame"])
+    # Frames 8-13 with continued centres (predictions, here 0.1 r off), fitted over
+    # 0.8 ms (4 frames) each side: they are kept as they are, yet the run the sphere is
+    # fitted over spans them, back to frames 4-9 that both views show (from frame 14
+    # on, 4 frames back reach none).
+    pred = pd.DataFrame(
+        [(f, 4, *(X[f] + [0.1 * r, 0, 0]), 0.0, 1.0, r, True, True) for f in range(8, 14)],
+        columns=list(anchors.columns),
+    )
+    table = pd.concat([anchors.assign(continued=False), pred.assign(continued=True)])
+    outline = _circle_outlines(cams, X, r, labs)
+    out = sphere_track_centres(table, cams, labs, outline, frames, fps, 0.0008)
+    assert list(out["frame"]) == list(range(14, last))
+    err = np.linalg.norm(out[["x", "y", "z"]].to_numpy(float) - X[out["frame"]], axis=1)
+    assert err.max() < 0.02 * r
 
 
 def test_anchored_table_fills_a_frame_missing_within_a_track():

@@ -322,8 +322,7 @@ def anchored_table(
     vis = ["visible"] if "visible" in anchors.columns else []
     a = anchors[anchors["bubble"] >= 1][["frame", "bubble", *xyz, *low, *vis]]
     bub = bub.merge(a, on=["frame", "bubble"], how="inner")
-    if "continued" in anchors.columns:
-        bub = pd.concat([bub, _continued_rows(table, anchors, bub, a)], ignore_index=True)
+    bub = pd.concat([bub, _unfitted_rows(table, bub, a)], ignore_index=True)
     if not low:
         bub["low"], bub["reproj_px"] = False, 0.0
     if vis and gap_frames > 0:
@@ -365,17 +364,15 @@ def anchored_table(
     return out.sort_values(["frame", "bubble"], kind="stable").reset_index(drop=True)
 
 
-def _continued_rows(
-    table: pd.DataFrame, anchors: pd.DataFrame, bub: pd.DataFrame, a: pd.DataFrame
-) -> pd.DataFrame:
-    """:func:`anchored_table`'s rows of the anchors' continued centres
-    (:func:`surfphase.masks.anchors.continued_centres`) that no surfels of their id
+def _unfitted_rows(table: pd.DataFrame, bub: pd.DataFrame, a: pd.DataFrame) -> pd.DataFrame:
+    """:func:`anchored_table`'s rows of the anchors ``a`` that no surfels of their id
     have at that frame (``bub``: the rows that have): a bubble leaving the frame, whose
-    sliver the fit may no longer hold, is reported there all the same (``n_surfels``
-    0; ``time_s`` from the table's uniform sampling)."""
-    rows = a[anchors.loc[a.index, "continued"].astype(bool).to_numpy()]
+    sliver the fit no longer holds (its continued centres,
+    :func:`surfphase.masks.anchors.continued_centres`), or one the fit gave no surfels
+    in a frame where both views' silhouettes agree on its centre, is reported there all
+    the same (``n_surfels`` 0; ``time_s`` from the table's uniform sampling)."""
     have = bub.set_index(["frame", "bubble"]).index
-    rows = rows[~rows.set_index(["frame", "bubble"]).index.isin(have)]
+    rows = a[~a.set_index(["frame", "bubble"]).index.isin(have)]
     times = _frame_times(table, rows["frame"].to_numpy())
     if not len(rows) or times is None:
         return bub.iloc[:0]
@@ -803,7 +800,7 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
     if p["anchor_centres"] and data.anchors is not None:
         table = anchored_table(
             bubble_table(arrays, times, frames),
-            data.anchors,
+            data.anchors[data.anchors["frame"].isin(frames)],  # ``frames``: those fitted
             data.nucleation_frames(),
             float(p["track_window_s"]),
             int(p["track_order"]),

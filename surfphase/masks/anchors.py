@@ -1090,22 +1090,10 @@ def lobe_centroids(
     return out
 
 
-def disc_in_frame(u: float, v: float, rho: float, shape: tuple[int, int]) -> float:
-    """Pixels (count of pixel centres) of the disc of centre ``(u, v)`` and radius
-    ``rho`` (pixels) inside an image of ``shape`` (H, W)."""
-    h, w = int(shape[0]), int(shape[1])
-    r0, r1 = max(int(np.floor(v - rho)), 0), min(int(np.ceil(v + rho)), h - 1)
-    c0, c1 = max(int(np.floor(u - rho)), 0), min(int(np.ceil(u + rho)), w - 1)
-    if r0 > r1 or c0 > c1:
-        return 0.0
-    vv, uu = np.mgrid[r0 : r1 + 1, c0 : c1 + 1]
-    return float(np.count_nonzero(np.hypot(uu - u, vv - v) <= rho))
-
-
 def circle_meets_frame(u: float, v: float, rho: float, shape: tuple[int, int]) -> bool:
     """Whether the circle of centre ``(u, v)`` and radius ``rho`` (pixels) overlaps an
     image of ``shape`` (H, W): its pixels' area, from −0.5 to W − 0.5 and H − 0.5
-    (pixel centres at integers), not only their centres (:func:`disc_in_frame`)."""
+    (pixel centres at integers), not only their centres."""
     h, w = int(shape[0]), int(shape[1])
     du = u - float(np.clip(u, -0.5, w - 0.5))
     dv = v - float(np.clip(v, -0.5, h - 0.5))
@@ -1130,11 +1118,14 @@ def continued_centres(
     continues the least-squares line through the run's centres of its last
     ``continue_s`` seconds (at least two) and its radius is their median ``r_m``, while
     at least one view still has pixels of its id in ``labels``, the sphere's image (the
-    centre's projection, radius f·r / depth) reaches into both frames, and every view's
-    pixels of the id lie within that circle (at most 10 % of them farther than
-    0.1 radius + 1 pixel from it); the same backwards from a run's first centre. A
-    continued centre is a prediction, not a measurement: its ``visible`` share is the
-    least, over the two views, of the id's pixels there over the circle's area.
+    centre's projection, radius f·r / depth), grown by 0.1 radius + 1 pixel, reaches
+    into both frames and holds every view's pixels of the id (at most 10 % of them
+    outside it); the same backwards from a run's first centre. The growth allows for
+    the bubble's shape (a spheroid or a shape mode reaches past its equivalent sphere),
+    and "reaches" is an overlap of the frame's pixel area (:func:`circle_meets_frame`):
+    a circle ending between two rows of pixel centres still darkens the row it reaches
+    into. A continued centre is a prediction, not a measurement: its ``visible`` share
+    is the least, over the two views, of the id's pixels there over the circle's area.
 
     Args:
         table: :func:`anchor_table` rows (with ``consistent``).
@@ -1212,12 +1203,13 @@ def _continued_shares(
             return None
         u, v, rho = circle
         im = np.asarray(lab[q])
-        if disc_in_frame(u, v, rho, im.shape) < 1:
+        reach = 1.1 * rho + 1.0  # a bubble is no sphere: its pixels may lie this far out
+        if not circle_meets_frame(u, v, reach, im.shape):
             return None
         ys, xs = np.nonzero(im == b)
         if len(ys):
             present = True
-            if np.mean(np.hypot(xs - u, ys - v) > 1.1 * rho + 1.0) > 0.1:
+            if np.mean(np.hypot(xs - u, ys - v) > reach) > 0.1:
                 return None
         shares.append(len(ys) / (np.pi * rho * rho))
     return shares if present else None
@@ -1322,10 +1314,11 @@ def sphere_track_centres(
     rows plus ``visible``, as :func:`continued_centres`'.
 
     For each id and each run of consecutive frame positions where the id is cut by a
-    view's border (:func:`border_ids`) and ``table`` has no consistent centre of it,
-    the sphere is fitted to the id's visible outlines (``outline(q, view, id)``) of the
-    run and of the frames within ``window_s`` seconds before and after it where the
-    border cuts it too. A frame of the run gets the sphere's centre where the test of
+    view's border (:func:`border_ids`) and ``table`` has no measured centre of it
+    (none, or a ``continued`` one: a prediction, kept as it is), the sphere is fitted to
+    the id's visible outlines (``outline(q, view, id)``) of the run and of the frames
+    within ``window_s`` seconds before and after it where the border cuts it too. A
+    frame of the run without a centre gets the sphere's where the test of
     :func:`continued_centres` holds (a view shows pixels of the id, the sphere's image
     reaches into both frames and holds them), every outline of the frame lies on its
     circle (rms radial distance at most ``max_rms`` of the radius), as do those of
@@ -1359,6 +1352,9 @@ def sphere_track_centres(
     pos = {int(f): k for k, f in enumerate(frames)}
     good = table[table["consistent"].astype(bool) & (table["bubble"] >= 1)]
     taken = {(pos[int(f)], int(b)) for f, b in zip(good["frame"], good["bubble"], strict=True)}
+    if "continued" in good.columns:  # continued centres are predictions: runs span them
+        good = good[~good["continued"].astype(bool)]
+    measured = {(pos[int(f)], int(b)) for f, b in zip(good["frame"], good["bubble"], strict=True)}
     cut_at: dict[int, list[int]] = {}
     for q in range(len(frames)):
         ids = set().union(*(border_ids(np.asarray(lab[q])) for lab in labels))
@@ -1378,8 +1374,8 @@ def sphere_track_centres(
 
     rows = []
     for b, qs in cut_at.items():
-        missing = [q for q in qs if (q, b) not in taken]
-        if not missing:
+        missing = [q for q in qs if (q, b) not in measured]
+        if not any((q, b) not in taken for q in missing):
             continue
         starts = np.flatnonzero(np.r_[True, np.diff(missing) != 1])
         ends = np.r_[starts[1:], len(missing)] - 1
@@ -1398,7 +1394,7 @@ def sphere_track_centres(
             seen_both = [q for q in near if all(p is not None and len(p) for p in outl[q])]
             if not all(rms_ok(where[q], R, outl[q]) for q in seen_both):
                 continue
-            for q in run:
+            for q in (q for q in run if (q, b) not in taken):
                 X = where[q]
                 shares = _continued_shares(X, R, b, q, cams, labels)
                 if shares is None or not rms_ok(X, R, outl[q]) or max(shares) < min_visible:
