@@ -1090,6 +1090,13 @@ def lobe_centroids(
     return out
 
 
+def circle_reach(rho: float) -> float:
+    """Radius (pixels) about a sphere's image circle of radius ``rho`` within which its
+    bubble's pixels may lie: 0.1 radius + 1 pixel beyond it. A bubble is no sphere (a
+    spheroid or a shape mode reaches past its equivalent sphere)."""
+    return 1.1 * float(rho) + 1.0
+
+
 def circle_meets_frame(u: float, v: float, rho: float, shape: tuple[int, int]) -> bool:
     """Whether the circle of centre ``(u, v)`` and radius ``rho`` (pixels) overlaps an
     image of ``shape`` (H, W): its pixels' area, from −0.5 to W − 0.5 and H − 0.5
@@ -1203,7 +1210,7 @@ def _continued_shares(
             return None
         u, v, rho = circle
         im = np.asarray(lab[q])
-        reach = 1.1 * rho + 1.0  # a bubble is no sphere: its pixels may lie this far out
+        reach = circle_reach(rho)
         if not circle_meets_frame(u, v, reach, im.shape):
             return None
         ys, xs = np.nonzero(im == b)
