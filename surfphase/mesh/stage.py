@@ -351,13 +351,12 @@ def sphere_shapes(
     (``{id: ((3,) centre m, radius m)}``): its image in the undistorted ``cam``
     (centre's projection, radius f·r / depth), where the visible part fits inside it
     (at most 2 % of its pixels outside); and of those with a sphere that have no pixels
-    in ``lab`` while their circle, grown as the mask stage's test of a continued centre
-    grows it (:func:`surfphase.masks.anchors.circle_reach`), overlaps the frame (a
-    bubble leaving it, whose sliver the view's labels no longer hold: ``masks: anchors:
-    continue_s``, ``sphere_track``; :func:`surfphase.masks.anchors.circle_meets_frame`:
-    the mask stage found it at the recording's resolution, whose pixel centres a coarser
-    grid may not have)."""
-    from surfphase.masks.anchors import border_ids, circle_meets_frame, circle_reach, sphere_image
+    in ``lab`` while their circle overlaps the frame (a bubble leaving it, whose
+    sliver the view's labels no longer hold: ``masks: anchors: continue_s``,
+    ``sphere_track``; :func:`surfphase.masks.anchors.circle_meets_frame`: the mask
+    stage found it at the recording's resolution, whose pixel centres a coarser grid
+    may not have)."""
+    from surfphase.masks.anchors import border_ids, circle_meets_frame, sphere_image
 
     out: dict[int, tuple] = {}
     absent = set(spheres) - set(np.unique(lab).tolist())
@@ -369,7 +368,7 @@ def sphere_shapes(
             continue
         u, v, rho = circle
         if b in absent:
-            if circle_meets_frame(u, v, circle_reach(rho), lab.shape):
+            if circle_meets_frame(u, v, rho, lab.shape):
                 out[b] = (float(u), float(v), rho, rho, 0.0)
             continue
         ys, xs = np.nonzero(lab == b)
