@@ -373,8 +373,8 @@ def _unfitted_rows(table: pd.DataFrame, bub: pd.DataFrame, a: pd.DataFrame) -> p
     the same (``n_surfels`` 0; ``time_s`` from the table's uniform sampling)."""
     have = bub.set_index(["frame", "bubble"]).index
     rows = a[~a.set_index(["frame", "bubble"]).index.isin(have)]
-    times = _frame_times(table, rows["frame"].to_numpy())
-    if not len(rows) or times is None:
+    times = _frame_times(table, rows["frame"].to_numpy()) if len(rows) else None
+    if times is None:
         return bub.iloc[:0]
     out = rows.copy()
     out["time_s"] = times
@@ -419,8 +419,8 @@ def _gap_rows(table: pd.DataFrame, bub: pd.DataFrame, gap_frames: int) -> pd.Dat
     at = np.flatnonzero((b[1:] == b[:-1]) & (step > 1) & (step <= gap_frames + 1) & sound)
     missing = [(int(f[i]) + k, int(b[i])) for i in at for k in range(1, int(step[i]))]
     out = pd.DataFrame(missing, columns=["frame", "bubble"])
-    times = _frame_times(table, out["frame"].to_numpy())
-    if not missing or times is None:
+    times = _frame_times(table, out["frame"].to_numpy()) if missing else None
+    if times is None:
         return bub.iloc[:0]
     have = table.drop_duplicates(["frame", "bubble"]).set_index(["frame", "bubble"])
     key = pd.MultiIndex.from_frame(out)
