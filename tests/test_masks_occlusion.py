@@ -177,3 +177,107 @@ def test_merge_relatives_pair_a_merges_parents_and_child():
     want = {frozenset(p) for p in ((2, 3), (2, 5), (3, 5))}
     assert merge_relatives(events) == want
     assert merge_relatives(events.iloc[:0]) == set()
+
+
+def _attached_scene(apart: bool):
+    """One frame of two views 40° apart (undistorted): a free sphere (r 1.1 mm, id 4)
+    in front of an attached bubble for cam1 (4 mm apart along its line of sight, 0.9 mm
+    across, 1 mm lower), apart for cam0. The attached bubble, the nucleation region
+    (id 0), is no sphere: the plate's line cuts its disc at its middle in both views.
+    cam1's labels fuse the two into id 4, or, with ``apart``, show the attached one's
+    visible part as its own nucleation piece. Returns the cameras, images, labels,
+    backgrounds, each view's entries (the free sphere's: cam0's analytic circle, cam1's
+    fused or own silhouette centroid) and the free sphere's analytic circle in cam1 and
+    the attached bubble's visible cover there."""
+    from test_masks_anchors import _rig, disk_cover
+
+    from surfphase.cameras import look_at
+    from surfphase.masks.anchors import coverage_centroids
+
+    c0, _ = _rig()
+    target = np.array([0.0, 0.005, 0.0])
+    a = np.deg2rad(40.0)
+    eye = target + (c0.center - target) @ np.array(
+        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
+    )
+    c1 = look_at("cam1", eye, target, 880.0, 160, 120)
+    d = (target - c1.center) / np.linalg.norm(target - c1.center)
+    side = np.cross(d, [0.0, 1.0, 0.0])
+    X = [
+        target - 0.002 * d + [0.0, 0.001, 0.0],
+        target + 0.002 * d + 0.0009 * side / np.linalg.norm(side),
+    ]
+    r = [0.0011, 0.0009]
+
+    def circle(cam, x, rr):
+        uv = cam.project(x[None], distort=False)[0]
+        return uv, rr * np.sqrt(cam.K[0, 0] * cam.K[1, 1]) / cam.world_to_camera(x[None])[0, 2]
+
+    def covers(cam):
+        (u, v), rp = circle(cam, X[0], r[0])
+        (ua, va), ra = circle(cam, X[1], r[1])
+        rows = np.arange(120)[:, None]
+        return disk_cover(120, 160, u, v, rp), disk_cover(120, 160, ua, va, ra) * (rows <= va)
+
+    (f0, a0), (f1, a1) = covers(c0), covers(c1)
+    lab0 = np.where(f0 >= 0.5, 4, np.where(a0 >= 0.5, 0, -1))
+    both = np.maximum(f1, a1)
+    shown = (a1 >= 0.5) & (f1 < 0.5)
+    lab1 = np.where(both >= 0.5, 4, -1)
+    if apart:
+        lab1[shown] = 0
+    images = {c: (0.8 * (1.0 - 0.6 * cov))[None].astype(np.float32) for c, cov in
+              (("cam0", np.maximum(f0, a0)), ("cam1", both))}  # fmt: skip
+    backgrounds = {c: (np.full((120, 160), 0.8, np.float32), np.zeros((120, 160), bool))
+                   for c in images}  # fmt: skip
+    (u0, v0), r0 = circle(c0, X[0], r[0])
+    cen1 = coverage_centroids(0.6 * both, lab1, 1)[4]
+    cents = [[{4: (float(u0), float(v0), float(np.pi * r0 * r0))}], [{4: cen1}]]
+    truth = circle(c1, X[0], r[0])
+    return (
+        (c0, c1),
+        images,
+        {"cam0": lab0[None], "cam1": lab1[None]},
+        backgrounds,
+        cents,
+        truth,
+        shown,
+    )
+
+
+def test_a_bubble_fused_with_an_attached_one_is_split_from_it():
+    """cam1 fuses the free sphere with the attached bubble behind it: the free sphere's
+    entry there becomes its circle fitted to the fused outline (within 0.25 px of its
+    analytic projection, radius within 2 %), marked fitted, and the attached bubble's
+    part of the silhouette goes back to the nucleation region (id 0; IoU with its
+    visible cover > 0.75)."""
+    from surfphase.masks.params import DEFAULTS
+    from surfphase.masks.stage import occluded_centres
+
+    cams, images, labels, backgrounds, cents, ((u, v), rp), shown = _attached_scene(False)
+    cuts = [[set()], [set()]]
+    split = occluded_centres(images, labels, backgrounds, cams, cents, cuts, DEFAULTS)
+    assert split == [("cam1", 0)]
+    cu, cv, area = cents[1][0][4]
+    assert np.hypot(cu - u, cv - v) < 0.25
+    assert np.sqrt(area / np.pi) == pytest.approx(rp, rel=0.02)
+    assert cuts[1][0] == {4}
+    nuc = labels["cam1"][0] == 0
+    assert (nuc & shown).sum() / (nuc | shown).sum() > 0.75
+    assert set(np.unique(labels["cam1"][0])) == {-1, 0, 4}
+
+
+def test_an_attached_bubble_both_views_show_is_left_alone():
+    """The same scene with cam1 showing the attached bubble's visible part as its own
+    nucleation piece: nothing is refitted or relabelled."""
+    from surfphase.masks.params import DEFAULTS
+    from surfphase.masks.stage import occluded_centres
+
+    cams, images, labels, backgrounds, cents, _truth, _shown = _attached_scene(True)
+    before = {c: lab.copy() for c, lab in labels.items()}
+    entry = cents[1][0][4]
+    cuts = [[set()], [set()]]
+    assert occluded_centres(images, labels, backgrounds, cams, cents, cuts, DEFAULTS) == []
+    assert cents[1][0][4] == entry and cuts == [[set()], [set()]]
+    for c in labels:
+        np.testing.assert_array_equal(labels[c], before[c])

@@ -18,7 +18,7 @@ stacks' pixel grid.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -873,6 +873,7 @@ def occluded_centres(
     known: Mapping[int, tuple[float, float, float]],
     max_rms: float = ANCHOR_DEFAULTS["max_sphere_rms"],
     grid: int = 40,
+    loose: Collection[int] = (),
 ) -> dict[int, tuple[float, float, float, float]] | None:
     """The circles of two or three bubbles whose silhouettes one view fuses into one.
 
@@ -897,6 +898,10 @@ def occluded_centres(
             pixels²).
         max_rms: largest rms residual over the circles' mean radius.
         grid: depths tried per ray for the start.
+        loose: bubbles of ``known`` that need not be spheres (an attached bubble, which
+            the plate cuts and deforms): each a circle free in the fused view (centre
+            and radius, from its sphere's start; its depth the start's), and the rms is
+            that of the outline points the other circles own, over their mean radius.
 
     Returns:
         ``{bubble: (u, v, area, depth)}`` in the fused view: each circle's centre
@@ -956,26 +961,59 @@ def occluded_centres(
         cost = (np.minimum(np.minimum(d[0][:, None, None], d[1][None, :, None]),
                            d[2][None, None]) ** 2).mean(-1)  # fmt: skip
     best = np.unravel_index(int(np.argmin(cost)), cost.shape)
-    x0 = np.array([starts[b][i] for b, i in enumerate(best)])
+    s0 = np.array([starts[b][i] for b, i in enumerate(best)])
+    # A loose bubble's circle is free in the fused view: (u, v, radius) px from its start.
+    free = [b for b in range(len(ids)) if ids[b] in loose]
+    held_ids = [b for b in range(len(ids)) if ids[b] not in loose]
+    if not held_ids:
+        return None
+    z_free = {}
+    x0, scale = [s0[b] for b in held_ids], [0.01 * s_ref] * len(held_ids)
+    for b in free:
+        c, r, z = circles(b, s0[b : b + 1])
+        x0 += [c[0, 0], c[0, 1], r[0]]
+        scale += [1.0, 1.0, 1.0]
+        z_free[b] = float(z[0])
+
+    def circle_of(b: int, x: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """Centre (2,) px, radius px and depth m of bubble ``ids[b]`` at parameters ``x``."""
+        if b in z_free:
+            k = len(held_ids) + 3 * free.index(b)
+            return x[k : k + 2], float(x[k + 2]), z_free[b]
+        c, r, z = circles(b, x[held_ids.index(b) : held_ids.index(b) + 1])
+        return c[0], float(r[0]), float(z[0])
+
+    def dist(x: np.ndarray) -> np.ndarray:
+        """(B, N) signed distance of each outline point to each circle's edge."""
+        out = []
+        for b in range(len(ids)):
+            c, r, _z = circle_of(b, x)
+            out.append(np.linalg.norm(pts - c[None], axis=1) - r)
+        return np.array(out)
 
     def resid(x: np.ndarray) -> np.ndarray:
-        return np.min([signed(b, x[b : b + 1])[0] for b in range(len(ids))], axis=0)
+        return dist(x).min(axis=0)
 
-    fit = least_squares(resid, x0, x_scale=np.full(len(ids), 0.01 * s_ref))
+    fit = least_squares(resid, np.array(x0), x_scale=np.array(scale))
     if not fit.success or not np.all(np.isfinite(fit.x)):
         return None
     out = {}
     radii = []
-    for b, x in enumerate(fit.x):
-        c, r, z = circles(b, np.array([x]))
-        if not (z[0] > 0 and r[0] > 0):
+    for b in range(len(ids)):
+        c, r, z = circle_of(b, fit.x)
+        if not (z > 0 and r > 0):
             return None
-        out[ids[b]] = (float(c[0, 0]), float(c[0, 1]), float(np.pi * r[0] ** 2), float(z[0]))
-        radii.append(float(r[0]))
+        out[ids[b]] = (float(c[0]), float(c[1]), float(np.pi * r**2), float(z))
+        radii.append(r)
     res = resid(fit.x)
-    if float(np.sqrt(np.mean(res**2))) > float(max_rms) * float(np.mean(radii)):
+    owner = np.argmin(np.abs(dist(fit.x)), axis=0)
+    strict = np.array([b not in loose for b in ids])
+    held = strict[owner]
+    if not held.any():
         return None
-    owner = np.argmin([np.abs(signed(b, fit.x[b : b + 1])[0]) for b in range(len(ids))], axis=0)
+    rms = float(np.sqrt(np.mean(res[held] ** 2)))
+    if rms > float(max_rms) * float(np.mean(np.asarray(radii)[strict])):
+        return None
     if np.bincount(owner, minlength=len(ids)).min() < 0.1 * len(pts):
         return None
     return out

@@ -214,7 +214,10 @@ ANCHOR_DEFAULTS: dict = {
     # silhouette (one in front of another): their spheres on the first view's rays fitted
     # to the fused outline's arcs give their centres there (occluded_centres; rms at most
     # max_sphere_rms of the circles' mean radius), and the fused silhouette's pixels go
-    # to the circle in front that holds them; False: such bubbles get no centre there.
+    # to the circle in front that holds them. An attached bubble (a nucleation piece one
+    # view shows whole) fused so with a free bubble is fitted with it as a free circle,
+    # out of the rms test, and its pixels go back to the nucleation region. False: such
+    # bubbles get no centre there.
     "occlusion": True,
     # A bubble born of a merge (both views' events), for this many seconds from the
     # merge frame (the coalescence time, as associate: merge_lobe_s), has as its

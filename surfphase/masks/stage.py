@@ -39,6 +39,7 @@ from __future__ import annotations
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -387,8 +388,13 @@ def occluded_centres(
     camera that holds it, else to the circle whose edge is nearest (background when
     further than :data:`SPLIT_REACH_PX` from all). Bubbles that a merge joins
     (``related``, pairs of ids: :func:`merge_relatives`) are not fitted together: one
-    view may see them merged, or as touching lobes, a frame before the other. Returns the
-    (camera, frame position) of the labels relabelled.
+    view may see them merged, or as touching lobes, a frame before the other. A
+    nucleation piece that the first view shows whole and the other hides in one free
+    bubble's silhouette (:func:`_nucleation_guests`) is fitted with that bubble as a
+    free circle, out of the rms test (an attached bubble is no sphere: ``loose``), gets no
+    entry, and its pixels go back
+    to the nucleation region. Returns the (camera, frame position) of the labels
+    relabelled.
     """
     names = list(stacks)[:2]
     cp, ap = params["classical"], params["anchors"]
@@ -410,6 +416,15 @@ def occluded_centres(
                 lab, lab_u, set(whole) - taken, cents[v][k], cuts[v][k], related
             ):
                 groups.append((group[0], group, True))
+            taken |= set().union(*(g for _, g, touching in groups if touching))
+            guests = _nucleation_guests(
+                cams, u, v, whole, lab_u, lab, taken,
+                partial(classical.relative_contrast, stacks[names[u]][k], cp, backgrounds[names[u]]),
+                backgrounds[names[u]][1], ring,
+            )  # fmt: skip
+            for host, (g, e) in guests.items():
+                whole[g] = e
+                groups.append((host, [host, g], False))
             for host, group, touching in groups:
                 if not 2 <= len(group) <= 3 or any(g not in whole for g in group):
                     continue
@@ -423,20 +438,84 @@ def occluded_centres(
                 if vis is None:
                     continue
                 fit = anchors.occluded_centres(
-                    cams, v, vis[0], {g: whole[g] for g in group}, rms_max
-                )
+                    cams, v, vis[0], {g: whole[g] for g in group}, rms_max,
+                    loose=[g for g in group if g >= GUEST_BASE],
+                )  # fmt: skip
                 if fit is None or not _discs_on_silhouettes(lab, fit):
                     continue
                 shown = _visible_shares(fit)
                 if touching and min(shown.values()) > 1.0 - MIN_HIDDEN_SHARE:
                     continue  # touching, none in front of another: the centroids hold
                 for g, (cu_, cv_, area, _z) in fit.items():
-                    if shown[g] >= float(ap["min_visible_sphere"]):
+                    if g < GUEST_BASE and shown[g] >= float(ap["min_visible_sphere"]):
                         cents[v][k][g] = (cu_, cv_, area)
                         cuts[v][k].add(g)
                 _split_fused(labels[names[v]], k, joined == host, fit)
+                if any(g >= GUEST_BASE for g in group):
+                    frame = np.asarray(labels[names[v]][k]).copy()
+                    frame[frame >= GUEST_BASE] = anchors.NUCLEATION_ID
+                    labels[names[v]][k] = frame
                 split.append((names[v], k))
     return split
+
+
+#: Ids from this one up stand, within :func:`occluded_centres`, for the nucleation
+#: region's pieces that one view sees apart and the other hides in a free bubble's
+#: silhouette (:func:`_nucleation_guests`); none is left in the labels.
+GUEST_BASE = 1 << 24
+
+
+def _nucleation_guests(
+    cams: Sequence, u: int, v: int, whole: Mapping, lab_u: np.ndarray, lab_v: np.ndarray,
+    taken: set[int], contrast_u: Callable[[], np.ndarray], plate_u: np.ndarray, ring: int,
+) -> dict[int, tuple[int, tuple[float, float, float]]]:  # fmt: skip
+    """``{host: (guest id, (u, v, area))}`` of one frame: the nucleation region's pieces
+    (an attached bubble each) that view ``u``'s (H, W) labels ``lab_u`` show whole and
+    apart from a free bubble (``host``, one of ``whole``, view ``u``'s whole entries, not
+    in ``taken``), and that view ``v``'s labels ``lab_v`` show in that bubble's
+    silhouette: no nucleation piece of ``v`` agrees with the piece
+    (:func:`surfphase.masks.anchors.agreeing_pieces`' rule) and its centroid's ray
+    crosses the host's silhouette only (the host's own ray crossing it too). A
+    bubble just off the plate is in front of, or behind, the next bubble growing at
+    another site, in a view that sees both sites in line. Each piece's entry is its
+    sub-pixel centroid and weighted area
+    (:func:`surfphase.masks.anchors.coverage_centroids`, ``contrast_u`` the view's
+    relative darkness, made when first needed, ``plate_u`` its plate), under a guest id
+    from :data:`GUEST_BASE`; one piece per host, the largest."""
+    pieces_u = anchors.silhouette_pieces(lab_u, anchors.NUCLEATION_ID)
+    if not pieces_u:
+        return {}
+    pieces_v = anchors.silhouette_pieces(lab_v, anchors.NUCLEATION_ID)
+    h, w = lab_u.shape
+    found: dict[int, tuple[float, np.ndarray]] = {}
+    for uv, area, m in pieces_u:
+        rr, cc = np.nonzero(m)
+        if rr.min() == 0 or cc.min() == 0 or rr.max() == h - 1 or cc.max() == w - 1:
+            continue  # cut by the frame: its centroid is not its centre's image
+        if any(
+            (sp := anchors.pair_sphere((cams[u], cams[v]), [uv, uv_v], [area, a_v])) is not None
+            and sp[2] <= anchors.PIECE_REPROJ_R
+            and sp[3] <= anchors.PIECE_SIZE_RATIO
+            for uv_v, a_v, _ in pieces_v
+        ):
+            continue  # the other view shows it too
+        hits = _epipolar_hits(cams[u], cams[v], (uv[0], uv[1]), lab_v)
+        if len(hits) != 1:
+            continue
+        host = next(iter(hits))
+        if host not in whole or host in taken:
+            continue
+        if _epipolar_hits(cams[u], cams[v], whole[host], lab_v) != {host}:
+            continue
+        if host not in found or area > found[host][0]:
+            found[host] = (area, m)
+    out: dict[int, tuple[int, tuple[float, float, float]]] = {}
+    con = contrast_u() if found else None
+    for i, (host, (_a, m)) in enumerate(sorted(found.items())):
+        g = GUEST_BASE + i
+        cen = anchors.coverage_centroids(con, np.where(m, g, lab_u), ring, plate_u)
+        out[host] = (g, cen[g])
+    return out
 
 
 def _fused_hosts(
