@@ -183,7 +183,8 @@ def _attached_scene(apart: bool):
     """One frame of two views 40° apart (undistorted): a free sphere (r 1.1 mm, id 4)
     in front of an attached bubble for cam1 (4 mm apart along its line of sight, 0.9 mm
     across, 1 mm lower), apart for cam0. The attached bubble, the nucleation region
-    (id 0), is no sphere: the plate's line cuts its disc at its middle in both views.
+    (id 0), is no sphere: the plate's line cuts its disc in both views, a fifth of its
+    diameter off (an attached bubble's centre is above the plate).
     cam1's labels fuse the two into id 4, or, with ``apart``, show the attached one's
     visible part as its own nucleation piece. Returns the cameras, images, labels,
     backgrounds, each view's entries (the free sphere's: cam0's analytic circle, cam1's
@@ -217,7 +218,9 @@ def _attached_scene(apart: bool):
         (u, v), rp = circle(cam, X[0], r[0])
         (ua, va), ra = circle(cam, X[1], r[1])
         rows = np.arange(120)[:, None]
-        return disk_cover(120, 160, u, v, rp), disk_cover(120, 160, ua, va, ra) * (rows <= va)
+        return disk_cover(120, 160, u, v, rp), disk_cover(120, 160, ua, va, ra) * (
+            rows <= va + 0.6 * ra
+        )
 
     (f0, a0), (f1, a1) = covers(c0), covers(c1)
     lab0 = np.where(f0 >= 0.5, 4, np.where(a0 >= 0.5, 0, -1))
@@ -281,3 +284,85 @@ def test_an_attached_bubble_both_views_show_is_left_alone():
     assert cents[1][0][4] == entry and cuts == [[set()], [set()]]
     for c in labels:
         np.testing.assert_array_equal(labels[c], before[c])
+
+
+def test_the_attached_bubble_is_handed_to_the_mesh_as_its_circle_in_the_fused_view():
+    """The split's attached circle, as a sphere (``attached``), projects into cam1 within
+    1.5 px of the attached bubble's analytic circle there (its cut disc's arcs fitted by
+    a free circle), radius within 15 %."""
+    from surfphase.masks.anchors import sphere_image
+    from surfphase.masks.params import DEFAULTS
+    from surfphase.masks.stage import occluded_centres
+
+    cams, images, labels, backgrounds, cents, _truth, _shown = _attached_scene(False)
+    attached: list = []
+    occluded_centres(images, labels, backgrounds, cams, cents, [[set()], [set()]], DEFAULTS,
+                     attached=attached)  # fmt: skip
+    assert len(attached) == 1 and attached[0][:2] == ("cam1", 0)
+    u, v, rho = sphere_image(cams[1], attached[0][2], attached[0][3])
+    (ua, va), ra = _attached_circle(cams[1])
+    assert np.hypot(u - ua, v - va) < 1.5 and rho == pytest.approx(ra, rel=0.15)
+
+
+def _attached_circle(cam):
+    """The analytic circle ((u, v), radius px) of :func:`_attached_scene`'s attached
+    bubble in ``cam``."""
+    from test_masks_anchors import _rig
+
+    c0, _ = _rig()
+    target = np.array([0.0, 0.005, 0.0])
+    c1 = cam
+    d = (target - c1.center) / np.linalg.norm(target - c1.center)
+    side = np.cross(d, [0.0, 1.0, 0.0])
+    x = target + 0.002 * d + 0.0009 * side / np.linalg.norm(side)
+    uv = cam.project(x[None], distort=False)[0]
+    return uv, 0.0009 * np.sqrt(cam.K[0, 0] * cam.K[1, 1]) / cam.world_to_camera(x[None])[0, 2]
+
+
+def test_a_speck_whose_ray_crosses_a_bubble_does_not_split_it(monkeypatch):
+    """:func:`_attached_scene` with cam0's nucleation piece replaced by a speck (3 × 3
+    px, as on the plate's edge) whose ray crosses cam1's fused silhouette: a free circle
+    fits a stretch of that outline (the attached bubble's), but it is no image of the
+    speck by the rule of the nucleation pieces (its size), so nothing is refitted or
+    relabelled; with that rule waived, the silhouette would be split."""
+    import surfphase.masks.stage as stage
+    from surfphase.masks.params import DEFAULTS
+
+    cams, images, labels, backgrounds, cents, _truth, _shown = _attached_scene(False)
+    X4 = _free_centre()
+    d = (X4 - cams[1].center) / np.linalg.norm(X4 - cams[1].center)
+    su, sv = cams[0].project((X4 + 0.004 * d)[None], distort=False)[0]
+    lab0 = np.where(labels["cam0"][0] == 0, -1, labels["cam0"][0])
+    r, c = int(round(sv)), int(round(su))
+    assert (lab0[r - 1 : r + 2, c - 1 : c + 2] == -1).all()  # apart from the sphere in cam0
+    lab0[r - 1 : r + 2, c - 1 : c + 2] = 0
+    lab1 = np.where(labels["cam1"][0] >= 0, 4, -1)
+    for waive in (False, True):
+        labs = {"cam0": lab0[None].copy(), "cam1": lab1[None].copy()}
+        if waive:
+            monkeypatch.setattr(stage, "_guest_agrees", lambda *a: True)
+        ents = [[dict(cents[0][0])], [dict(cents[1][0])]]
+        cuts = [[set()], [set()]]
+        split = stage.occluded_centres(images, labs, backgrounds, cams, ents, cuts, DEFAULTS)
+        if not waive:
+            assert split == [] and ents[1][0] == cents[1][0]
+            np.testing.assert_array_equal(labs["cam1"][0], lab1)
+        else:
+            assert split == [("cam1", 0)] and (labs["cam1"][0] == 0).any()
+
+
+def _free_centre():
+    """The free sphere's centre (m) in :func:`_attached_scene`."""
+    from test_masks_anchors import _rig
+
+    from surfphase.cameras import look_at
+
+    c0, _ = _rig()
+    target = np.array([0.0, 0.005, 0.0])
+    a = np.deg2rad(40.0)
+    eye = target + (c0.center - target) @ np.array(
+        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
+    )
+    c1 = look_at("cam1", eye, target, 880.0, 160, 120)
+    d = (target - c1.center) / np.linalg.norm(target - c1.center)
+    return target - 0.002 * d + [0.0, 0.001, 0.0]

@@ -613,3 +613,44 @@ def test_spared_ids_are_the_reported_bubbles_and_those_cut_in_both_views():
     assert spared_ids(s, 1) == {3, 5, 6}
     assert spared_ids(s, 0) == {5, 6}
     assert spared_ids(SimpleNamespace(centres=None, masks=[lab, other]), 1) == {3}
+
+
+def test_an_attached_bubble_hidden_behind_a_free_one_in_one_view_is_meshed_whole():
+    """The scene of the test above with the back sphere the nucleation region's (id 0,
+    an attached bubble) and the front one a free bubble: cam1 shows a crescent of it.
+    Meshed from those labels, its hull is short; with the free bubble's pixels that its
+    disc covers added in cam1 (``hidden[0]``, the mask stage's attached circle), its
+    volume is within 8 % of 4/3 π r³. Hidden pixels that do not touch the piece are not
+    its own."""
+    from surfphase.cameras import look_at
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+
+    cams = []
+    for k, az in enumerate((-20.0, 20.0)):
+        a, e = np.radians(az), np.radians(6.0)
+        eye = CENTRE + 0.1 * np.array([np.sin(a) * np.cos(e), np.sin(e), -np.cos(a) * np.cos(e)])
+        cams.append(look_at(f"cam{k}", eye, CENTRE, 1500.0, 240, 240))
+    d = (CENTRE - cams[1].center) / np.linalg.norm(CENTRE - cams[1].center)
+    side = np.cross(d, [0.0, 1.0, 0.0])
+    back_c = CENTRE + 0.0015 * d + 0.0007 * side / np.linalg.norm(side)
+    spheres = {3: (CENTRE - 0.0015 * d, 1e-3), 0: (back_c, 0.8e-3)}
+    labels = [_sphere_labels(c, spheres) for c in cams]
+    assert 0 < (labels[1] == 0).sum() < 0.7 * (labels[0] == 0).sum()  # a crescent in cam1
+    c, r = spheres[0]
+    uv = cams[1].project(c[None], distort=False)[0]
+    rho = r * 1500.0 / cams[1].world_to_camera(c[None])[0, 2]
+    vv, uu = np.mgrid[0:240, 0:240]
+    behind = (np.hypot(uu - uv[0], vv - uv[1]) <= rho) & (labels[1] >= 1)
+    stray = np.zeros_like(behind)
+    stray[5:9, 5:9] = True  # far from the piece
+    p = mesh_params({"surface": "hull"})
+    vols = {}
+    for name, hidden in (("crescent", None), ("whole", {0: [None, behind]}),
+                         ("stray", {0: [None, behind | stray]}), ("only stray", {0: [None, stray]})):  # fmt: skip
+        verts, faces, ids = hull_mesh_frame(cams, labels, p, hidden=hidden)
+        v, f = _bubble_mesh(verts, faces, ids, 0)
+        vols[name] = abs(signed_volume(v, f)) / (4 / 3 * np.pi * r**3)
+    assert vols["crescent"] < 0.8, vols
+    assert abs(vols["whole"] - 1) < 0.08, vols
+    assert vols["stray"] == vols["whole"] and vols["only stray"] == vols["crescent"], vols

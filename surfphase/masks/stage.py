@@ -297,8 +297,11 @@ def frame_anchors(
         cuts.append(per_cut)
     cams = [cameras[c].undistorted() for c in names]
     split: list[tuple[str, int]] = []
+    attached: list = []
     if ap["occlusion"] and len(names) == 2:
-        split = occluded_centres(stacks, labels, backgrounds, cams, cents, cuts, params, related)
+        split = occluded_centres(
+            stacks, labels, backgrounds, cams, cents, cuts, params, related, attached
+        )
     if float(ap["min_visible_sphere"]) <= 1.0 and len(names) == 2:
         sphere_cut_centres(stacks, labels, backgrounds, cams, cents, cuts, params)
     table = anchors.anchor_table(cams, cents, frames, ap, cuts, young)
@@ -326,6 +329,11 @@ def frame_anchors(
         )  # fmt: skip
         table = _with_continued(table, more)
     table.attrs["split"] = split
+    table.attrs["attached"] = [
+        {"frame": int(frames[k]), "camera": c, "x": float(X[0]), "y": float(X[1]),
+         "z": float(X[2]), "r_m": r}
+        for c, k, X, r in attached
+    ]  # fmt: skip
     return table
 
 
@@ -364,6 +372,7 @@ def occluded_centres(
     cuts: list[list[set[int]]],
     params: Mapping,
     related: set[frozenset[int]] = frozenset(),
+    attached: list | None = None,
 ) -> list[tuple[str, int]]:
     """Fill in place, in ``cents`` and ``cuts`` (as :func:`frame_anchors` builds them),
     the centres of bubbles that one view sees apart and whole and the other sees one in
@@ -393,8 +402,10 @@ def occluded_centres(
     bubble's silhouette (:func:`_nucleation_guests`) is fitted with that bubble as a
     free circle, out of the rms test (an attached bubble is no sphere: ``loose``), gets no
     entry, and its pixels go back
-    to the nucleation region. Returns the (camera, frame position) of the labels
-    relabelled.
+    to the nucleation region; its circle there, as a sphere ``(camera, frame position,
+    (3,) centre m, radius m)`` (:func:`_circle_sphere`), is appended to ``attached``:
+    the mesh adds to the attached bubble the part of it the free bubble hides. Returns
+    the (camera, frame position) of the labels relabelled.
     """
     names = list(stacks)[:2]
     cp, ap = params["classical"], params["anchors"]
@@ -443,6 +454,9 @@ def occluded_centres(
                 )  # fmt: skip
                 if fit is None or not _discs_on_silhouettes(lab, fit):
                     continue
+                if not all(_guest_agrees(cams, u, v, whole[g], fit[g]) for g in group
+                           if g >= GUEST_BASE):  # fmt: skip
+                    continue
                 shown = _visible_shares(fit)
                 if touching and min(shown.values()) > 1.0 - MIN_HIDDEN_SHARE:
                     continue  # touching, none in front of another: the centroids hold
@@ -452,11 +466,40 @@ def occluded_centres(
                         cuts[v][k].add(g)
                 _split_fused(labels[names[v]], k, joined == host, fit)
                 if any(g >= GUEST_BASE for g in group):
+                    if attached is not None:
+                        attached += [(names[v], k, *_circle_sphere(cams[v], *fit[g]))
+                                     for g in group if g >= GUEST_BASE]  # fmt: skip
                     frame = np.asarray(labels[names[v]][k]).copy()
                     frame[frame >= GUEST_BASE] = anchors.NUCLEATION_ID
                     labels[names[v]][k] = frame
                 split.append((names[v], k))
     return split
+
+
+def _guest_agrees(cams: Sequence, u: int, v: int, entry: tuple, circle: tuple) -> bool:
+    """Whether a nucleation piece's ``entry`` ``(u, v, area)`` in view ``u`` and its
+    fitted free ``circle`` ``(u, v, area, depth)`` in view ``v`` are one object by the
+    rule of the nucleation region's pieces (:func:`surfphase.masks.anchors.pair_sphere`
+    within :data:`~surfphase.masks.anchors.PIECE_REPROJ_R` and
+    :data:`~surfphase.masks.anchors.PIECE_SIZE_RATIO`): a free circle can fit a stretch of
+    the host's own outline, off the piece's ray or of another size (a speck on the
+    plate's edge whose ray crosses a bubble)."""
+    sp = anchors.pair_sphere(
+        (cams[u], cams[v]),
+        [np.asarray(entry[:2], np.float64), np.asarray(circle[:2], np.float64)],
+        [float(entry[2]), float(circle[2])],
+    )
+    return sp is not None and sp[2] <= anchors.PIECE_REPROJ_R and sp[3] <= anchors.PIECE_SIZE_RATIO
+
+
+def _circle_sphere(cam, u: float, v: float, area: float, depth: float) -> tuple[np.ndarray, float]:
+    """The sphere ((3,) centre m, radius m) whose image in the undistorted ``cam`` is the
+    circle of centre (``u``, ``v``) pixels and ``area`` pixels², at ``depth`` m
+    (the inverse of :func:`surfphase.masks.anchors.sphere_image`)."""
+    f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+    ray = cam.R.T @ np.linalg.solve(cam.K, np.array([u, v, 1.0]))
+    X = np.asarray(cam.center, np.float64) + float(depth) * ray / float((cam.R @ ray)[2])
+    return X, float(np.sqrt(area / np.pi)) * float(depth) / f
 
 
 #: Ids from this one up stand, within :func:`occluded_centres`, for the nucleation
@@ -1013,9 +1056,11 @@ def _anchor_and_drop(
     dropped = drop_inconsistent(labels, instances, anchor_tab, merged)
     static = drop_static(labels, instances, anchor_tab, fps, float(p["anchors"]["min_speed_mps"]))
     instances = instances[instances["bubble"] != -1].reset_index(drop=True)
+    attached = anchor_tab.attrs.get("attached", [])
     anchor_tab = anchor_tab[
         anchor_tab["consistent"].astype(bool) & ~anchor_tab["bubble"].isin(static)
     ]
+    anchor_tab.attrs["attached"] = attached
     return instances, anchor_tab, dropped, static
 
 
@@ -1105,6 +1150,7 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
         "dropped_static": static,
         "segment_seconds": round(t_seg, 3),
         "warnings": blank_notes,
+        "attached_hidden": anchor_tab.attrs.get("attached", []),
     }
     write_masks(
         out_dir, bubble_labels, instances, events,

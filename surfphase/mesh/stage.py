@@ -130,6 +130,7 @@ class _Session:
     areas: dict[int, dict[int, list[float]]] | None = None  # frame → bubble → per view px
     pieces: dict[int, list[np.ndarray]] | None = None  # frame → per view (N, 3) u, v, px
     spheres: dict[int, dict[int, tuple]] | None = None  # frame → bubble → ((3,) m, r m)
+    attached: dict[int, dict[int, list]] | None = None  # frame → view → [((3,) m, r m)]
 
 
 def _open_session(
@@ -180,12 +181,13 @@ def _open_session(
     if p["surface"] == "hull" and p["complete_cut"] and masks_dir is not None:
         cut_rules = masks_anchor_rules(masks_dir)
         hashed += [f for f in [masks_dir / MASKS_INFO] if f.is_file()]
-    spheres = None
+    spheres = attached = None
     if cut_rules is not None and p["complete_cut_spheres"]:
         anchors_tab = read_anchors(masks_dir, f"session {session}")
         if anchors_tab is not None and "r_m" in anchors_tab.columns:
             spheres = anchor_spheres(anchors_tab)
             hashed.append(Path(masks_dir) / MASKS_ANCHORS)
+        attached = attached_spheres(masks_dir, inputs)
     areas = pieces = None
     if p["surface"] == "hull" and p["hull_native_area"] and masks_dir is not None:
         inst = Path(masks_dir) / MASKS_INSTANCES
@@ -197,7 +199,7 @@ def _open_session(
     key = mesh_key(surfels_path, cam_path, p, dev)
     if hashed:
         key = hashlib.sha256("".join([key, *map(_file_hash, hashed)]).encode()).hexdigest()
-    found = (masks, centres, cut_rules, areas, pieces, spheres)
+    found = (masks, centres, cut_rules, areas, pieces, spheres, attached)
     return _Session(surfels, inputs, session, p, dev, key, picks, *found)
 
 
@@ -211,6 +213,24 @@ def anchor_spheres(anchors_tab: pd.DataFrame) -> dict[int, dict[int, tuple]]:
     for f, b, c, rr in zip(rows["frame"], rows["bubble"], xyz, r, strict=True):
         if np.isfinite(c).all() and np.isfinite(rr) and rr > 0:
             out.setdefault(int(f), {})[int(b)] = (c, float(rr))
+    return out
+
+
+def attached_spheres(masks_dir: Path, cameras: list[Camera]) -> dict[int, dict[int, list]]:
+    """``{frame: {view index: [((3,) centre m, radius m)]}}`` of a masks folder's
+    ``masks.json`` ``attached_hidden`` entries: the circles, as spheres, of attached
+    bubbles that a free bubble hides in part in one view (``masks: anchors:
+    occlusion``), per input camera of ``cameras`` (entries of other cameras left out)."""
+    info = Path(masks_dir) / MASKS_INFO
+    if not info.is_file():
+        return {}
+    index = {c.name: k for k, c in enumerate(cameras)}
+    out: dict[int, dict[int, list]] = {}
+    for e in json.loads(info.read_text()).get("attached_hidden") or []:
+        k = index.get(str(e["camera"]))
+        if k is not None:
+            X = np.array([e["x"], e["y"], e["z"]], np.float64)
+            out.setdefault(int(e["frame"]), {}).setdefault(k, []).append((X, float(e["r_m"])))
     return out
 
 
@@ -317,16 +337,33 @@ def hidden_parts(
     (at most 10 % of its pixels more than a pixel outside: the labels were split at the
     recording's resolution, and a stray piece may lie apart); None in the other views. The mask stage splits
     a fused silhouette between the bubbles in it (``masks: anchors: occlusion``): the
-    one behind keeps only what shows of it."""
-    if not s.spheres:
+    one behind keeps only what shows of it. The nucleation region (id 0) has an entry
+    where an attached bubble's circle (``masks.json``'s ``attached_hidden``,
+    :func:`attached_spheres`) lies so on bubbles' silhouettes and its image holds
+    nucleation pixels: the pixels of those silhouettes in its image."""
+    if not s.spheres and not s.attached:
         return None
-    spheres = s.spheres.get(int(s.surfels["frame"][t]), {})
+    spheres = (s.spheres or {}).get(int(s.surfels["frame"][t]), {})
+    attached = (s.attached or {}).get(int(s.surfels["frame"][t]), {})
     out: dict[int, list[np.ndarray | None]] = {}
-    from surfphase.masks.anchors import sphere_image
+    from surfphase.masks.anchors import NUCLEATION_ID, sphere_image
 
     for k, (cam, lab) in enumerate(zip(views, labels, strict=True)):
         cam = cam.undistorted()
         vv, uu = np.mgrid[0 : lab.shape[0], 0 : lab.shape[1]]
+        for X, r in attached.get(k, []):
+            circle = sphere_image(cam, X, r)
+            if circle is None:
+                continue
+            u, v, rho = circle
+            disc = np.hypot(uu - u, vv - v) <= rho
+            behind = disc & (lab >= 1)
+            if behind.sum() < HIDDEN_MIN_SHARE * np.pi * rho * rho:
+                continue
+            if not (disc & (lab == NUCLEATION_ID)).any():
+                continue
+            views_b = out.setdefault(NUCLEATION_ID, [None] * len(views))
+            views_b[k] = behind if views_b[k] is None else views_b[k] | behind
         for b, (X, r) in spheres.items():
             circle = sphere_image(cam, X, r)
             if b < 1 or circle is None or not (lab == b).any():

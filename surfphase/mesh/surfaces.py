@@ -8,6 +8,7 @@ over a session.
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from surfphase.cameras import Camera, orbit_cameras
@@ -126,7 +127,8 @@ def hull_mesh_frame(
     across loses a part of its volume to their pixels and the hull's slices. A bubble
     with a ``hidden`` entry (id → per view, the (H, W) bool pixels it covers behind
     other bubbles there, or None) has those pixels added to its silhouette in that view,
-    and that view's area left out of the scaling. With ``pieces`` (per view, (N, 3)
+    and that view's area left out of the scaling; so has each piece of the nucleation
+    region, of ``hidden[0]``'s pixels, those that touch it (:func:`_touching`). With ``pieces`` (per view, (N, 3)
     centroid column, row and native area, pixels, of the nucleation region's whole
     pieces), each hull of the nucleation region is scaled in the same way to the areas
     of the pieces whose centroids lie on its silhouette in each view: a bubble growing
@@ -136,7 +138,7 @@ def hull_mesh_frame(
     views = [c.undistorted() for c in inputs]
     verts, faces, ids, n = [], [], [], 0
     for b, centre, radius, masks, agree in bubble_pieces(views, labels):
-        behind = (hidden or {}).get(b) if b >= 1 else None
+        behind = (hidden or {}).get(b) if b >= 1 else _touching(hidden, b, masks)
         known = b in spared or (bool(centres) and b in centres) or behind is not None
         if p["hull_agreeing"] and b >= 1 and not (agree or known):
             continue  # never one object in both views: a hull would be a ghost
@@ -181,10 +183,12 @@ def hull_mesh_frame(
                 v[:, 1] = np.maximum(v[:, 1], float(p["floor_y"]))
         elif len(f) and pieces is not None and b == NUCLEATION_ID:
             native = [_area_on(m, pc) for m, pc in zip(masks, pieces, strict=False)]
-            if len(native) == len(views) and all(a > 0 for a in native):
+            seen = [k for k in range(len(views)) if behind is None or behind[k] is None]
+            if len(native) == len(views) and all(native[k] > 0 for k in seen):
                 v = scale_to_silhouettes(
-                    v, f, views, native, v.mean(axis=0), tuple(p["hull_area_limits"])
-                )
+                    v, f, [views[k] for k in seen], [native[k] for k in seen], v.mean(axis=0),
+                    tuple(p["hull_area_limits"]),
+                )  # fmt: skip
                 if p["floor_y"] is not None:
                     v[:, 1] = np.maximum(v[:, 1], float(p["floor_y"]))
         if len(f):
@@ -195,6 +199,28 @@ def hull_mesh_frame(
     if not verts:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
     return np.concatenate(verts), np.concatenate(faces), np.concatenate(ids)
+
+
+def _touching(
+    hidden: dict[int, list[np.ndarray | None]] | None, b: int, masks: list[np.ndarray]
+) -> list[np.ndarray | None] | None:
+    """For a piece of the nucleation region (id ``b``, its (H, W) bool ``masks`` per
+    view), the parts of ``hidden[b]`` (per view, bubbles' pixels that hide attached
+    bubbles, or None) that touch the piece's silhouette in each view (8-connected
+    pieces of it sharing an edge or corner with it); None where no view has any."""
+    per_view = (hidden or {}).get(b)
+    if per_view is None:
+        return None
+    out: list[np.ndarray | None] = []
+    for m, h in zip(masks, per_view, strict=True):
+        if h is None or not h.any():
+            out.append(None)
+            continue
+        comp, n = ndi.label(h, structure=np.ones((3, 3), bool))
+        near = ndi.binary_dilation(m, structure=np.ones((3, 3), bool))
+        keep = np.unique(comp[near & (comp > 0)])
+        out.append(np.isin(comp, keep) if len(keep) else None)
+    return out if any(x is not None for x in out) else None
 
 
 def _area_on(mask: np.ndarray, pieces: np.ndarray) -> float:
