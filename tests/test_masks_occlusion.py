@@ -179,7 +179,34 @@ def test_merge_relatives_pair_a_merges_parents_and_child():
     assert merge_relatives(events.iloc[:0]) == set()
 
 
-def _attached_scene(apart: bool):
+def _attached_geometry(lift: float = 0.0):
+    """:func:`_attached_scene`'s two cameras (cam0 of the anchors tests' rig, cam1 40°
+    about its target) and (3,) sphere centres (m): the free one (r 1.1 mm) 4 mm nearer
+    cam1 along its line of sight and 1 mm higher than the attached one (r 0.9 mm), which
+    is 0.9 mm across it, its centre 0.5 mm above the plate (y = 0), both ``lift`` m
+    higher."""
+    from test_masks_anchors import _rig
+
+    from surfphase.cameras import look_at
+
+    c0, _ = _rig()
+    target = np.array([0.0, 0.005, 0.0])
+    a = np.deg2rad(40.0)
+    eye = target + (c0.center - target) @ np.array(
+        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
+    )
+    c1 = look_at("cam1", eye, target, 880.0, 160, 120)
+    base = np.array([0.0, 0.0005 + lift, 0.0])
+    d = (base - c1.center) / np.linalg.norm(base - c1.center)
+    side = np.cross(d, [0.0, 1.0, 0.0])
+    X = [
+        base - 0.002 * d + [0.0, 0.001, 0.0],
+        base + 0.002 * d + 0.0009 * side / np.linalg.norm(side),
+    ]
+    return c0, c1, X
+
+
+def _attached_scene(apart: bool, lift: float = 0.0):
     """One frame of two views 40° apart (undistorted): a free sphere (r 1.1 mm, id 4)
     in front of an attached bubble for cam1 (4 mm apart along its line of sight, 0.9 mm
     across, 1 mm lower), apart for cam0. The attached bubble, the nucleation region
@@ -189,25 +216,12 @@ def _attached_scene(apart: bool):
     visible part as its own nucleation piece. Returns the cameras, images, labels,
     backgrounds, each view's entries (the free sphere's: cam0's analytic circle, cam1's
     fused or own silhouette centroid) and the free sphere's analytic circle in cam1 and
-    the attached bubble's visible cover there."""
-    from test_masks_anchors import _rig, disk_cover
+    the attached bubble's visible cover there. ``lift``: as :func:`_attached_geometry`'s."""
+    from test_masks_anchors import disk_cover
 
-    from surfphase.cameras import look_at
     from surfphase.masks.anchors import coverage_centroids
 
-    c0, _ = _rig()
-    target = np.array([0.0, 0.005, 0.0])
-    a = np.deg2rad(40.0)
-    eye = target + (c0.center - target) @ np.array(
-        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
-    )
-    c1 = look_at("cam1", eye, target, 880.0, 160, 120)
-    d = (target - c1.center) / np.linalg.norm(target - c1.center)
-    side = np.cross(d, [0.0, 1.0, 0.0])
-    X = [
-        target - 0.002 * d + [0.0, 0.001, 0.0],
-        target + 0.002 * d + 0.0009 * side / np.linalg.norm(side),
-    ]
+    c0, c1, X = _attached_geometry(lift)
     r = [0.0011, 0.0009]
 
     def circle(cam, x, rr):
@@ -307,14 +321,7 @@ def test_the_attached_bubble_is_handed_to_the_mesh_as_its_circle_in_the_fused_vi
 def _attached_circle(cam):
     """The analytic circle ((u, v), radius px) of :func:`_attached_scene`'s attached
     bubble in ``cam``."""
-    from test_masks_anchors import _rig
-
-    c0, _ = _rig()
-    target = np.array([0.0, 0.005, 0.0])
-    c1 = cam
-    d = (target - c1.center) / np.linalg.norm(target - c1.center)
-    side = np.cross(d, [0.0, 1.0, 0.0])
-    x = target + 0.002 * d + 0.0009 * side / np.linalg.norm(side)
+    x = _attached_geometry()[2][1]
     uv = cam.project(x[None], distort=False)[0]
     return uv, 0.0009 * np.sqrt(cam.K[0, 0] * cam.K[1, 1]) / cam.world_to_camera(x[None])[0, 2]
 
@@ -324,7 +331,8 @@ def test_a_speck_whose_ray_crosses_a_bubble_does_not_split_it(monkeypatch):
     px, as on the plate's edge) whose ray crosses cam1's fused silhouette: a free circle
     fits a stretch of that outline (the attached bubble's), but it is no image of the
     speck by the rule of the nucleation pieces (its size), so nothing is refitted or
-    relabelled; with that rule waived, the silhouette would be split."""
+    relabelled; with that rule waived (:func:`_guest_sphere`), the silhouette would be
+    split."""
     import surfphase.masks.stage as stage
     from surfphase.masks.params import DEFAULTS
 
@@ -340,7 +348,9 @@ def test_a_speck_whose_ray_crosses_a_bubble_does_not_split_it(monkeypatch):
     for waive in (False, True):
         labs = {"cam0": lab0[None].copy(), "cam1": lab1[None].copy()}
         if waive:
-            monkeypatch.setattr(stage, "_guest_agrees", lambda *a: True)
+            monkeypatch.setattr(
+                stage, "_guest_sphere", lambda cams, u, v, e, c, low: (np.zeros(3), 1e-3)
+            )
         ents = [[dict(cents[0][0])], [dict(cents[1][0])]]
         cuts = [[set()], [set()]]
         split = stage.occluded_centres(images, labs, backgrounds, cams, ents, cuts, DEFAULTS)
@@ -353,16 +363,19 @@ def test_a_speck_whose_ray_crosses_a_bubble_does_not_split_it(monkeypatch):
 
 def _free_centre():
     """The free sphere's centre (m) in :func:`_attached_scene`."""
-    from test_masks_anchors import _rig
+    return _attached_geometry()[2][0]
 
-    from surfphase.cameras import look_at
 
-    c0, _ = _rig()
-    target = np.array([0.0, 0.005, 0.0])
-    a = np.deg2rad(40.0)
-    eye = target + (c0.center - target) @ np.array(
-        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
-    )
-    c1 = look_at("cam1", eye, target, 880.0, 160, 120)
-    d = (target - c1.center) / np.linalg.norm(target - c1.center)
-    return target - 0.002 * d + [0.0, 0.001, 0.0]
+def test_a_piece_whose_sphere_does_not_meet_the_plate_is_no_attached_bubble():
+    """The same scene 3 mm above the plate: the piece's sphere does not meet it (its
+    bottom above ``nucleation_height``), so it is no attached bubble, and nothing is
+    refitted or relabelled."""
+    from surfphase.masks.params import DEFAULTS
+    from surfphase.masks.stage import occluded_centres
+
+    cams, images, labels, backgrounds, cents, _truth, _shown = _attached_scene(False, 0.003)
+    before = {c: lab.copy() for c, lab in labels.items()}
+    cuts = [[set()], [set()]]
+    assert occluded_centres(images, labels, backgrounds, cams, cents, cuts, DEFAULTS) == []
+    for c in labels:
+        np.testing.assert_array_equal(labels[c], before[c])

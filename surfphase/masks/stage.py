@@ -410,6 +410,7 @@ def occluded_centres(
     names = list(stacks)[:2]
     cp, ap = params["classical"], params["anchors"]
     ring, rms_max = int(ap["ring_px"]), float(ap["max_sphere_rms"])
+    low = float(params["associate"]["nucleation_height"])
     split: list[tuple[str, int]] = []
     for k in range(stacks[names[0]].shape[0]):
         for v in (0, 1):
@@ -454,8 +455,9 @@ def occluded_centres(
                 )  # fmt: skip
                 if fit is None or not _discs_on_silhouettes(lab, fit):
                     continue
-                if not all(_guest_agrees(cams, u, v, whole[g], fit[g]) for g in group
-                           if g >= GUEST_BASE):  # fmt: skip
+                spheres = {g: _guest_sphere(cams, u, v, whole[g], fit[g], low)
+                           for g in group if g >= GUEST_BASE}  # fmt: skip
+                if any(sp is None for sp in spheres.values()):
                     continue
                 shown = _visible_shares(fit)
                 if touching and min(shown.values()) > 1.0 - MIN_HIDDEN_SHARE:
@@ -467,8 +469,7 @@ def occluded_centres(
                 _split_fused(labels[names[v]], k, joined == host, fit)
                 if any(g >= GUEST_BASE for g in group):
                     if attached is not None:
-                        attached += [(names[v], k, *_circle_sphere(cams[v], *fit[g]))
-                                     for g in group if g >= GUEST_BASE]  # fmt: skip
+                        attached += [(names[v], k, *sp) for sp in spheres.values()]
                     frame = np.asarray(labels[names[v]][k]).copy()
                     frame[frame >= GUEST_BASE] = anchors.NUCLEATION_ID
                     labels[names[v]][k] = frame
@@ -476,20 +477,35 @@ def occluded_centres(
     return split
 
 
-def _guest_agrees(cams: Sequence, u: int, v: int, entry: tuple, circle: tuple) -> bool:
-    """Whether a nucleation piece's ``entry`` ``(u, v, area)`` in view ``u`` and its
-    fitted free ``circle`` ``(u, v, area, depth)`` in view ``v`` are one object by the
-    rule of the nucleation region's pieces (:func:`surfphase.masks.anchors.pair_sphere`
-    within :data:`~surfphase.masks.anchors.PIECE_REPROJ_R` and
-    :data:`~surfphase.masks.anchors.PIECE_SIZE_RATIO`): a free circle can fit a stretch of
-    the host's own outline, off the piece's ray or of another size (a speck on the
-    plate's edge whose ray crosses a bubble)."""
+def _guest_sphere(
+    cams: Sequence, u: int, v: int, entry: tuple, circle: tuple, low: float
+) -> tuple[np.ndarray, float] | None:
+    """The sphere ((3,) centre m, radius m) of a nucleation piece's ``entry`` ``(u, v,
+    area)`` in view ``u`` and its fitted free ``circle`` ``(u, v, area, depth)`` in view
+    ``v``, where the two are one attached bubble; None where they are not.
+
+    One object by the rule of the nucleation region's pieces
+    (:func:`surfphase.masks.anchors.pair_sphere` within
+    :data:`~surfphase.masks.anchors.PIECE_REPROJ_R` and
+    :data:`~surfphase.masks.anchors.PIECE_SIZE_RATIO`), and attached: the sphere meets
+    the plate (y = 0; its bottom at most ``low``, ``associate: nucleation_height``, above
+    it, its top above it). A free circle can fit a stretch of the host's own outline on
+    the ray of a speck of the plate's edge whose ray crosses a bubble; such a circle is off
+    the ray, of another size, or under the plate. The centre returned lies on the
+    circle's ray in view ``v`` at the triangulated depth, the radius that of the circle
+    there: its image in ``v`` is the fitted circle."""
     sp = anchors.pair_sphere(
         (cams[u], cams[v]),
         [np.asarray(entry[:2], np.float64), np.asarray(circle[:2], np.float64)],
         [float(entry[2]), float(circle[2])],
     )
-    return sp is not None and sp[2] <= anchors.PIECE_REPROJ_R and sp[3] <= anchors.PIECE_SIZE_RATIO
+    if sp is None or sp[2] > anchors.PIECE_REPROJ_R or sp[3] > anchors.PIECE_SIZE_RATIO:
+        return None
+    X, r = sp[0], sp[1]
+    if not (X[1] - r <= low and X[1] + r > 0.0):
+        return None
+    depth = float(cams[v].world_to_camera(np.asarray(X, np.float64)[None])[0, 2])
+    return _circle_sphere(cams[v], circle[0], circle[1], circle[2], depth)
 
 
 def _circle_sphere(cam, u: float, v: float, area: float, depth: float) -> tuple[np.ndarray, float]:
