@@ -92,6 +92,18 @@ def _rig():
     return c0, c1
 
 
+def rig_40():
+    """cam0 of :func:`_rig` and a cam1 40° about its target (the target (3,) m too), for
+    bubbles one view sees one behind another."""
+    c0, _ = _rig()
+    target = np.array([0.0, 0.005, 0.0])
+    a = np.deg2rad(40.0)
+    eye = target + (c0.center - target) @ np.array(
+        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
+    )
+    return c0, look_at("cam1", eye, target, 880.0, 160, 120), target
+
+
 def test_anchor_table_triangulates_and_checks_agreement():
     c0, c1 = _rig()
     X = np.array([0.0011, 0.0052, -0.0007])
@@ -950,13 +962,7 @@ def test_two_bubbles_one_view_fuses_get_their_circles_from_its_outline(lateral):
     centres are within 0.05 r of the truth."""
     from surfphase.masks.anchors import occluded_centres, visible_outline
 
-    c0, _ = _rig()
-    target = np.array([0.0, 0.005, 0.0])
-    a = np.deg2rad(40.0)
-    eye = target + (c0.center - target) @ np.array(
-        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
-    )
-    c1 = look_at("cam1", eye, target, 880.0, 160, 120)
+    c0, c1, target = rig_40()
     d = (target - c1.center) / np.linalg.norm(target - c1.center)
     side = np.cross(d, [0.0, 1.0, 0.0])
     X = [target - 0.002 * d, target + 0.002 * d + lateral * side / np.linalg.norm(side)]
@@ -1005,13 +1011,7 @@ def test_a_bubble_fused_with_an_attached_one_gets_its_circle(lateral, lift, keep
     analytic projection (radius within 1 %), in front."""
     from surfphase.masks.anchors import occluded_centres, visible_outline
 
-    c0, _ = _rig()
-    target = np.array([0.0, 0.005, 0.0])
-    a = np.deg2rad(40.0)
-    eye = target + (c0.center - target) @ np.array(
-        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
-    )
-    c1 = look_at("cam1", eye, target, 880.0, 160, 120)
+    c0, c1, target = rig_40()
     d = (target - c1.center) / np.linalg.norm(target - c1.center)
     side = np.cross(d, [0.0, 1.0, 0.0])
     X = [

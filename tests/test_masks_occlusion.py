@@ -185,17 +185,9 @@ def _attached_geometry(lift: float = 0.0):
     cam1 along its line of sight and 1 mm higher than the attached one (r 0.9 mm), which
     is 0.9 mm across it, its centre 0.5 mm above the plate (y = 0), both ``lift`` m
     higher."""
-    from test_masks_anchors import _rig
+    from test_masks_anchors import rig_40
 
-    from surfphase.cameras import look_at
-
-    c0, _ = _rig()
-    target = np.array([0.0, 0.005, 0.0])
-    a = np.deg2rad(40.0)
-    eye = target + (c0.center - target) @ np.array(
-        [[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]]
-    )
-    c1 = look_at("cam1", eye, target, 880.0, 160, 120)
+    c0, c1, _target = rig_40()
     base = np.array([0.0, 0.0005 + lift, 0.0])
     d = (base - c1.center) / np.linalg.norm(base - c1.center)
     side = np.cross(d, [0.0, 1.0, 0.0])

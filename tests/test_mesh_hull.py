@@ -526,15 +526,13 @@ def test_silhouette_areas_sum_pieces_and_leave_out_cut_and_half_seen_bubbles():
     assert got == {4: {1: [120.5, 110.0]}, 5: {1: [101.0, 112.0]}}
 
 
-def test_a_bubble_hidden_behind_another_in_one_view_is_meshed_whole():
-    """Two spheres (1 and 0.8 mm) one behind the other for cam1 (3 mm apart along its
-    line of sight, 0.7 mm across), apart for cam0: cam1's labels show the back one as a
-    crescent. Meshed from those labels, the back sphere's hull is short; with the pixels
-    its disc covers behind the front one added in cam1 (``hidden``), its volume is
-    within 8 % of 4/3 π r³ and its bisector/across extent within 0.15 of 1."""
+def _one_behind_another(back: int):
+    """Two views 40° apart, 6° up, 240² at 1500 px, and two spheres (ids 3 and ``back``,
+    1 and 0.8 mm) one behind the other for cam1 (3 mm apart along its line of sight,
+    0.7 mm across), apart for cam0: the cameras, the spheres ``{id: ((3,) m, r m)}``,
+    each view's labels, and cam1's (H, W) pixels of the back sphere's disc that the
+    front one covers. cam1's labels show the back one as a crescent."""
     from surfphase.cameras import look_at
-    from surfphase.mesh.measure import signed_volume
-    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
 
     cams = []
     for k, az in enumerate((-20.0, 20.0)):
@@ -544,14 +542,28 @@ def test_a_bubble_hidden_behind_another_in_one_view_is_meshed_whole():
     d = (CENTRE - cams[1].center) / np.linalg.norm(CENTRE - cams[1].center)
     side = np.cross(d, [0.0, 1.0, 0.0])
     back_c = CENTRE + 0.0015 * d + 0.0007 * side / np.linalg.norm(side)
-    spheres = {3: (CENTRE - 0.0015 * d, 1e-3), 5: (back_c, 0.8e-3)}
+    spheres = {3: (CENTRE - 0.0015 * d, 1e-3), back: (back_c, 0.8e-3)}
     labels = [_sphere_labels(c, spheres) for c in cams]
-    assert 0 < (labels[1] == 5).sum() < 0.7 * (labels[0] == 5).sum()  # a crescent in cam1
-    c, r = spheres[5]
+    assert 0 < (labels[1] == back).sum() < 0.7 * (labels[0] == back).sum()  # a crescent
+    c, r = spheres[back]
     uv = cams[1].project(c[None], distort=False)[0]
     rho = r * 1500.0 / cams[1].world_to_camera(c[None])[0, 2]
     vv, uu = np.mgrid[0:240, 0:240]
     behind = (np.hypot(uu - uv[0], vv - uv[1]) <= rho) & (labels[1] == 3)
+    return cams, spheres, labels, behind
+
+
+def test_a_bubble_hidden_behind_another_in_one_view_is_meshed_whole():
+    """Two spheres (1 and 0.8 mm) one behind the other for cam1 (3 mm apart along its
+    line of sight, 0.7 mm across), apart for cam0: cam1's labels show the back one as a
+    crescent. Meshed from those labels, the back sphere's hull is short; with the pixels
+    its disc covers behind the front one added in cam1 (``hidden``), its volume is
+    within 8 % of 4/3 π r³ and its bisector/across extent within 0.15 of 1."""
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+
+    cams, spheres, labels, behind = _one_behind_another(5)
+    r = spheres[5][1]
     p = mesh_params({"surface": "hull"})
     got = {}
     # The crescent's centroid is off the sphere's image: with hull_agreeing (default) a
@@ -622,26 +634,11 @@ def test_an_attached_bubble_hidden_behind_a_free_one_in_one_view_is_meshed_whole
     disc covers added in cam1 (``hidden[0]``, the mask stage's attached circle), its
     volume is within 8 % of 4/3 π r³. Hidden pixels that do not touch the piece are not
     its own."""
-    from surfphase.cameras import look_at
     from surfphase.mesh.measure import signed_volume
     from surfphase.mesh.stage import hull_mesh_frame, mesh_params
 
-    cams = []
-    for k, az in enumerate((-20.0, 20.0)):
-        a, e = np.radians(az), np.radians(6.0)
-        eye = CENTRE + 0.1 * np.array([np.sin(a) * np.cos(e), np.sin(e), -np.cos(a) * np.cos(e)])
-        cams.append(look_at(f"cam{k}", eye, CENTRE, 1500.0, 240, 240))
-    d = (CENTRE - cams[1].center) / np.linalg.norm(CENTRE - cams[1].center)
-    side = np.cross(d, [0.0, 1.0, 0.0])
-    back_c = CENTRE + 0.0015 * d + 0.0007 * side / np.linalg.norm(side)
-    spheres = {3: (CENTRE - 0.0015 * d, 1e-3), 0: (back_c, 0.8e-3)}
-    labels = [_sphere_labels(c, spheres) for c in cams]
-    assert 0 < (labels[1] == 0).sum() < 0.7 * (labels[0] == 0).sum()  # a crescent in cam1
-    c, r = spheres[0]
-    uv = cams[1].project(c[None], distort=False)[0]
-    rho = r * 1500.0 / cams[1].world_to_camera(c[None])[0, 2]
-    vv, uu = np.mgrid[0:240, 0:240]
-    behind = (np.hypot(uu - uv[0], vv - uv[1]) <= rho) & (labels[1] >= 1)
+    cams, spheres, labels, behind = _one_behind_another(0)
+    r = spheres[0][1]
     stray = np.zeros_like(behind)
     stray[5:9, 5:9] = True  # far from the piece
     p = mesh_params({"surface": "hull"})
