@@ -195,6 +195,14 @@ PIECE_REPROJ_R = 0.25
 PIECE_SIZE_RATIO = 1.5
 
 
+def pieces_agree(sp: tuple | None) -> bool:
+    """Whether two pieces are one object by the rule of the nucleation region's pieces:
+    their :func:`pair_sphere` ``sp`` exists, reprojects within :data:`PIECE_REPROJ_R`
+    of each piece's equivalent radius, and the radii they give differ by at most
+    :data:`PIECE_SIZE_RATIO`."""
+    return sp is not None and sp[2] <= PIECE_REPROJ_R and sp[3] <= PIECE_SIZE_RATIO
+
+
 def agreeing_pieces(
     cameras: Sequence[Camera], lab0: np.ndarray, lab1: np.ndarray, b: int
 ) -> list[tuple[np.ndarray, float, np.ndarray, np.ndarray]]:
@@ -211,7 +219,7 @@ def agreeing_pieces(
     for i, (u0, a0, _) in enumerate(p0):
         for j, (u1, a1, _) in enumerate(p1):
             sp = pair_sphere(cameras, [u0, u1], [a0, a1])
-            if sp is not None and sp[2] <= PIECE_REPROJ_R and sp[3] <= PIECE_SIZE_RATIO:
+            if pieces_agree(sp):
                 cands.append((sp[2], i, j, sp))
     used0, used1, out = set(), set(), []
     for _, i, j, sp in sorted(cands, key=lambda x: x[:3]):
@@ -232,6 +240,18 @@ def sphere_image(cam: Camera, X: np.ndarray, r: float) -> tuple[float, float, fl
         return None
     u, v = cam.project(X, distort=False)[0]
     return float(u), float(v), float(np.sqrt(cam.K[0, 0] * cam.K[1, 1])) * float(r) / z
+
+
+def circle_sphere(
+    cam: Camera, u: float, v: float, area: float, depth: float
+) -> tuple[np.ndarray, float]:
+    """The sphere ((3,) centre m, radius m) whose image in the undistorted ``cam`` is the
+    circle of centre (``u``, ``v``) pixels and ``area`` pixels², at ``depth`` m
+    (the inverse of :func:`sphere_image`)."""
+    f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+    ray = cam.R.T @ np.linalg.solve(cam.K, np.array([u, v, 1.0]))
+    X = np.asarray(cam.center, np.float64) + float(depth) * ray / float((cam.R @ ray)[2])
+    return X, float(np.sqrt(area / np.pi)) * float(depth) / f
 
 
 def apparent_size(cam: Camera, X: np.ndarray, area_px: float) -> float:

@@ -403,7 +403,7 @@ def occluded_centres(
     free circle, out of the rms test (an attached bubble is no sphere: ``loose``), gets no
     entry, and its pixels go back
     to the nucleation region; its circle there, as a sphere ``(camera, frame position,
-    (3,) centre m, radius m)`` (:func:`_circle_sphere`), is appended to ``attached``:
+    (3,) centre m, radius m)`` (:func:`_guest_sphere`), is appended to ``attached``:
     the mesh adds to the attached bubble the part of it the free bubble hides. Returns
     the (camera, frame position) of the labels relabelled.
     """
@@ -485,9 +485,7 @@ def _guest_sphere(
     ``v``, where the two are one attached bubble; None where they are not.
 
     One object by the rule of the nucleation region's pieces
-    (:func:`surfphase.masks.anchors.pair_sphere` within
-    :data:`~surfphase.masks.anchors.PIECE_REPROJ_R` and
-    :data:`~surfphase.masks.anchors.PIECE_SIZE_RATIO`), and attached: the sphere meets
+    (:func:`surfphase.masks.anchors.pieces_agree`), and attached: the sphere meets
     the plate (y = 0; its bottom at most ``low``, ``associate: nucleation_height``, above
     it, its top above it). A free circle can fit a stretch of the host's own outline on
     the ray of a speck of the plate's edge whose ray crosses a bubble; such a circle is off
@@ -499,23 +497,13 @@ def _guest_sphere(
         [np.asarray(entry[:2], np.float64), np.asarray(circle[:2], np.float64)],
         [float(entry[2]), float(circle[2])],
     )
-    if sp is None or sp[2] > anchors.PIECE_REPROJ_R or sp[3] > anchors.PIECE_SIZE_RATIO:
+    if not anchors.pieces_agree(sp):
         return None
     X, r = sp[0], sp[1]
     if not (X[1] - r <= low and X[1] + r > 0.0):
         return None
     depth = float(cams[v].world_to_camera(np.asarray(X, np.float64)[None])[0, 2])
-    return _circle_sphere(cams[v], circle[0], circle[1], circle[2], depth)
-
-
-def _circle_sphere(cam, u: float, v: float, area: float, depth: float) -> tuple[np.ndarray, float]:
-    """The sphere ((3,) centre m, radius m) whose image in the undistorted ``cam`` is the
-    circle of centre (``u``, ``v``) pixels and ``area`` pixels², at ``depth`` m
-    (the inverse of :func:`surfphase.masks.anchors.sphere_image`)."""
-    f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
-    ray = cam.R.T @ np.linalg.solve(cam.K, np.array([u, v, 1.0]))
-    X = np.asarray(cam.center, np.float64) + float(depth) * ray / float((cam.R @ ray)[2])
-    return X, float(np.sqrt(area / np.pi)) * float(depth) / f
+    return anchors.circle_sphere(cams[v], circle[0], circle[1], circle[2], depth)
 
 
 #: Ids from this one up stand, within :func:`occluded_centres`, for the nucleation
@@ -552,9 +540,7 @@ def _nucleation_guests(
         if rr.min() == 0 or cc.min() == 0 or rr.max() == h - 1 or cc.max() == w - 1:
             continue  # cut by the frame: its centroid is not its centre's image
         if any(
-            (sp := anchors.pair_sphere((cams[u], cams[v]), [uv, uv_v], [area, a_v])) is not None
-            and sp[2] <= anchors.PIECE_REPROJ_R
-            and sp[3] <= anchors.PIECE_SIZE_RATIO
+            anchors.pieces_agree(anchors.pair_sphere((cams[u], cams[v]), [uv, uv_v], [area, a_v]))
             for uv_v, a_v, _ in pieces_v
         ):
             continue  # the other view shows it too

@@ -249,10 +249,9 @@ def bubble_pieces(
     """
     from surfphase.masks.anchors import (
         NUCLEATION_ID,
-        PIECE_REPROJ_R,
-        PIECE_SIZE_RATIO,
         agreeing_pieces,
         pair_sphere,
+        pieces_agree,
     )
 
     lab0, lab1 = (np.asarray(lb) for lb in labels[:2])
@@ -275,7 +274,7 @@ def bubble_pieces(
                 areas.append(float(len(rr)))
             sp = pair_sphere(cameras, uvs, areas)
             if sp is not None and sp[1] > 0:
-                agree = sp[2] <= PIECE_REPROJ_R and sp[3] <= PIECE_SIZE_RATIO
+                agree = pieces_agree(sp)
                 found = [(int(b), sp[0], sp[1], masks, bool(agree and b != NUCLEATION_ID))]
         out += found
     return out
