@@ -178,6 +178,37 @@ def test_bubble_growing_on_the_plate_is_whole():
         assert best_iou(truths[t], labels, 1) > 0.9
 
 
+@pytest.mark.parametrize("r", [4.5, 5.5, 6.5, 8.0])
+def test_a_small_blurred_bubble_on_the_plate_grows_to_its_outline(r):
+    """Blurred (a lens, 1 px), a small bubble's thin dark rim departs from the dim
+    plate by less than ``static_edge``: the segmentation keeps little more than its
+    bright core. Grown to half its rim's own darkness it is its outline, to within a
+    third of the area for the smallest (the blur lowers a thin rim's peak, so that edge
+    errs outwards); it loses no pixel and takes none of another instance's."""
+    h = w = 96
+    frames, truths = [], []
+    for t in range(8):
+        sites = [(40.0, 72 + 0.3 * r, r), (70.0, 30.0, 6.0)] if t % 2 == 0 else []
+        img, tr = shadowgraph(h, w, sites, seed=t, plate_row=64, noise=0.005)
+        frames.append(cv2.GaussianBlur(img, (0, 0), 1.0))
+        truths.append(tr)
+    stack = np.stack(frames)
+    bg = classical.static_background(classical.session_reference(stack))
+    noise = classical.contrast_noise(stack[1::2], None, bg)  # the frames without bubbles
+    labels, _ = classical.segment_frame(stack[0], None, bg, noise)
+    assert labels.max() + 1 == 2
+    truth = truths[0] == 0
+    k = int(np.bincount(labels[truth & (labels >= 0)]).argmax())
+    piece = labels == k
+    if r < 6:
+        assert piece.sum() / truth.sum() < 0.6
+    signed = classical.relative_contrast(stack[0], None, bg, signed=True)
+    grown = classical.outline_in_front(piece, labels < 0, signed, bg[1], None, noise)
+    assert 0.9 < grown.sum() / truth.sum() < 1.35
+    assert (grown & truth).sum() / (grown | truth).sum() > 0.75
+    assert not (piece & ~grown).any() and not (grown & (labels >= 0) & ~piece).any()
+
+
 def test_a_plate_seen_with_backlight_below_it_is_the_plate():
     """A camera level with the plate sees backlight under it too: the plate's band
     spans the width without reaching the bottom border. It is still the static
@@ -378,3 +409,25 @@ def test_noise_raises_the_thresholds_where_the_plate_is_dim():
         labels = classical.segment_frame(f, None, bgs, noise)[0]
         assert away(labels, t) == 0
         assert labels[70 - 3 * t, 90] >= 0 and labels[108, 40] >= 0
+
+
+def test_outline_in_front_grows_by_a_dark_rim_only():
+    """A bubble's piece in front of the plate (its bright core) grows through its dark
+    rim to the rim's outer edge, no farther than its own radius; a speck brighter than
+    the plate all round (a piece of the plate's edge) has no rim and does not grow."""
+    h = w = 40
+    yy, xx = np.mgrid[0:h, 0:w]
+    rho = np.hypot(yy - 20, xx - 20)
+    static = np.ones((h, w), bool)
+    core = rho <= 2.5
+    for halo, grows in ((0.15, True), (-0.15, False)):
+        signed = np.where(core, -0.8, np.where(rho <= 5.5, halo, 0.0)).astype(np.float32)
+        # The contrast's zero crossing between the core and the rim: a 1-px ring.
+        signed[(rho > 2.5) & (rho <= 3.5)] = 0.0
+        out = classical.outline_in_front(core, np.ones((h, w), bool), signed, static)
+        assert not (core & ~out).any()
+        if grows:
+            disc = rho <= 5.5
+            assert (out == disc).mean() > 0.99 and (out & ~disc).sum() == 0
+        else:
+            assert (out == core).all()

@@ -133,3 +133,94 @@ def test_config_errors_name_the_key():
     with pytest.raises(ValueError, match="backend"):
         merge_params({"backend": "magic"})
     assert merge_params(None) == DEFAULTS
+
+
+def test_nucleation_pieces_grow_to_their_outline_and_keep_their_rows():
+    """After the association the nucleation region's pieces (id 0) grow to their outline
+    in front of the plate (:func:`classical.outline_in_front`) and their rows of the
+    instance table are remade from the grown pixels; a free bubble's pixels and row are
+    left as they were."""
+    import cv2
+    from test_masks_classical import shadowgraph
+
+    from surfphase.masks import classical
+    from surfphase.masks.stage import grown_nucleation
+
+    frames = []
+    for t in range(8):
+        sites = [(40.0, 73.5, 5.0), (70.0, 30.0, 6.0)] if t % 2 == 0 else []
+        img, _ = shadowgraph(96, 96, sites, seed=t, plate_row=64, noise=0.005)
+        frames.append(cv2.GaussianBlur(img, (0, 0), 1.0))
+    stack = np.stack(frames)
+    bg = classical.static_background(classical.session_reference(stack))
+    lab = np.full(stack.shape, -1, np.int32)
+    rows = []
+    for t in range(0, 8, 2):
+        seg, _ = classical.segment_frame(stack[t], None, bg)
+        for k in range(seg.max() + 1):
+            ys, xs = np.nonzero(seg == k)
+            b = 0 if ys.mean() > 64 else 1  # the one sitting on the plate
+            lab[t][seg == k] = b
+            rows.append((t, "cam0", b, ys.size, xs.mean(), ys.mean(), xs.min(), ys.min(),
+                         xs.max(), ys.max(), 0.5))  # fmt: skip
+    cols = ["frame", "camera", "bubble", "area", "cx", "cy", "x0", "y0", "x1", "y1", "score"]
+    inst = pd.DataFrame(rows, columns=cols)
+    before = lab.copy()
+    p = merge_params({})
+    out = grown_nucleation({"cam0": lab}, inst, {"cam0": stack}, {"cam0": bg}, p)
+    noise = classical.contrast_noise(stack, p["classical"], bg)
+    for t in range(0, 8, 2):
+        signed = classical.relative_contrast(stack[t], p["classical"], bg, signed=True)
+        want = classical.outline_in_front(
+            before[t] == 0, before[t] < 0, signed, bg[1], p["classical"], noise
+        )
+        assert (want.sum() > (before[t] == 0).sum()) and ((lab[t] == 0) == want).all()
+        assert ((lab[t] == 1) == (before[t] == 1)).all()
+        row = out[(out.frame == t) & (out.bubble == 0)].iloc[0]
+        ys, xs = np.nonzero(want)
+        assert row.area == ys.size and np.isclose(row.cx, xs.mean()) and row.y1 == ys.max()
+        free = out[(out.frame == t) & (out.bubble == 1)].reset_index(drop=True)
+        pd.testing.assert_frame_equal(
+            free, inst[(inst.frame == t) & (inst.bubble == 1)].reset_index(drop=True)
+        )
+
+
+def test_grown_nucleation_pieces_stay_apart_downscaled():
+    """Two attached bubbles side by side, their dark rims overlapping, each a bright core:
+    grown with a 3-px gap (2 s − 1 at a downscale of s = 2) they stay two pieces in the
+    downscaled labels too, which a 1-px gap does not keep apart."""
+    from surfphase.masks.anchors import downsample_labels
+    from surfphase.masks.stage import grown_nucleation
+
+    h = w = 48
+    yy, xx = np.mgrid[0:h, 0:w]
+    bright = np.full((h, w), 0.3, np.float32)  # the plate, lit
+    rhos = [np.hypot(yy - 16, xx - cx) for cx in (16, 24)]
+    for rho in rhos:
+        bright[rho <= 6] = 0.3 * 0.8  # the rim, 0.2 darker than the plate
+    stack = np.stack([bright, bright])
+    bg = (np.full((h, w), 0.3, np.float32), np.ones((h, w), bool))
+    counts = {}
+    for gap in (1, 3):
+        lab = np.full((1, h, w), -1, np.int32)
+        for rho in rhos:
+            stack[:, rho <= 3] = 0.9  # the core
+            lab[0][rho <= 3] = 0
+        inst = pd.DataFrame(
+            [(0, "cam0", 0, 29, float(cx), 16.0, cx - 3, 13, cx + 3, 19, 0.5) for cx in (16, 24)],
+            columns=["frame", "camera", "bubble", "area", "cx", "cy", "x0", "y0", "x1", "y1",
+                     "score"],
+        )  # fmt: skip
+        out = grown_nucleation({"cam0": lab}, inst, {"cam0": stack}, {"cam0": bg},
+                               merge_params({}), gap)  # fmt: skip
+        comp, n = ndi_label(lab[0] == 0)
+        assert n == 2 and (lab[0] == 0).sum() > 2 * 29
+        assert sorted(out.area) == sorted(np.bincount(comp.ravel())[1:])
+        counts[gap] = ndi_label(downsample_labels(lab[0], (w // 2, h // 2)) == 0)[1]
+    assert counts == {1: 1, 3: 2}
+
+
+def ndi_label(mask):
+    from scipy import ndimage as ndi
+
+    return ndi.label(mask, np.ones((3, 3), bool))

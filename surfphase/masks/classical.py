@@ -666,6 +666,65 @@ def fill_holes_to_border(mask: np.ndarray, at_border: tuple[bool, bool, bool, bo
     ]
 
 
+def outline_in_front(
+    piece: np.ndarray,
+    free: np.ndarray,
+    signed: np.ndarray,
+    static: np.ndarray,
+    params: Mapping | None = None,
+    noise: np.ndarray | None = None,
+) -> np.ndarray:
+    """(H, W) bool ``piece`` grown, in front of the plate, to its outline.
+
+    :func:`foreground_mask` puts a bubble's edge there at ``static_edge`` of relative
+    contrast. A small bubble's dark rim is thin, and the lens's blur lowers it to
+    little more than 0.1 above the plate: that edge keeps its bright core and little
+    else. Here the edge is ``edge_frac`` of the rim's own darkness (the 95th
+    percentile of ``signed`` (H, W), :func:`relative_contrast` with ``signed``, over
+    the piece and 2 px about it in front of the plate, ``static`` (H, W) bool), where
+    that is lower than ``static_edge``, never below ``threshold_low`` nor
+    ``noise_low`` × ``noise`` ((H, W), :func:`contrast_noise`). The piece takes the
+    pixels darker than the plate past that edge (its rim; a speck of the plate's edge,
+    brighter than the plate, has none), ``free`` ((H, W) bool: no other instance's) and
+    no farther from it than its own equivalent radius (at least 2 px: a bubble's bright
+    core is at least half its radius), closed by ``static_close_px`` and its holes
+    filled as there, where joined to it; it never loses one.
+    """
+    p = {**CLASSICAL_DEFAULTS, **(params or {})}
+    if not piece.any():
+        return piece.copy()
+    r_close = int(p["static_close_px"])
+    # The core is at least half the bubble's radius: the piece grows by at most its own.
+    reach = max(2, int(round(np.sqrt(piece.sum() / np.pi))))
+    pad = reach + r_close
+    ys, xs = np.nonzero(piece)
+    sl = (
+        slice(max(ys.min() - pad, 0), ys.max() + pad + 1),
+        slice(max(xs.min() - pad, 0), xs.max() + pad + 1),
+    )
+    own, st = piece[sl], static[sl]
+    if (own & st).sum() < 4:
+        return piece.copy()
+    grow = np.ones((3, 3), bool)
+    ring = ndi.binary_dilation(own, grow, iterations=2) & st
+    region = (ndi.binary_dilation(own, grow, iterations=reach) & free[sl]) | own
+    sg = signed[sl]
+    rim_peak = float(np.percentile(sg[ring], 95))
+    low = np.full(own.shape, max(p["edge_frac"] * rim_peak, p["threshold_low"]), np.float32)
+    if noise is not None:
+        low = np.maximum(low, p["noise_low"] * noise[sl])
+    edge = own | (st & (sg >= np.minimum(low, p["static_edge"])) & region)
+    if r_close > 0:
+        # The rim and the core meet across the contrast's zero crossing.
+        yy, xx = np.mgrid[-r_close : r_close + 1, -r_close : r_close + 1]
+        closed = ndi.binary_closing(np.pad(edge, r_close), xx**2 + yy**2 <= r_close**2)
+        edge = closed[r_close:-r_close, r_close:-r_close] & region
+    whole = ndi.binary_fill_holes(edge) & region
+    out = piece.copy()
+    out[sl] |= ndi.binary_propagation(own, grow, mask=whole | own)
+    return out
+
+
 def foreground_mask(
     contrast: np.ndarray,
     params: Mapping | None = None,

@@ -9,7 +9,9 @@ Input (the output of ``ingest``), a folder ``INGEST`` with:
 Outputs in ``OUT``:
 
 * ``<cam>_labels.npy`` — int32 frames × H × W, −1 background, 0 the nucleation
-  region at the heated plate, ≥ 1 a bubble id shared by all views and frames;
+  region at the heated plate (its pieces grown to their outline in front of the plate
+  after the association, :func:`grown_nucleation`), ≥ 1 a bubble id shared by all
+  views and frames;
 * ``instances.csv`` — ``frame, camera, bubble, area, cx, cy, x0, y0, x1, y1, score``
   (pixels; ``score`` is the backend's confidence);
 * ``events.csv`` — ``frame, camera, event, parents, children`` (merge, split, detach);
@@ -656,6 +658,74 @@ def refreshed_instances(
     return out.sort_values(["frame", "camera", "bubble"], kind="stable").reset_index(drop=True)
 
 
+#: 8-connectivity: a piece's pixels touching at a corner are one piece.
+EIGHT = np.ones((3, 3), bool)
+
+
+def refreshed_pieces(
+    instances: pd.DataFrame, lab_stack: np.ndarray, camera: str, k: int, bubble: int = 0
+) -> pd.DataFrame:
+    """``instances`` with the rows of id ``bubble`` of ``camera`` at frame position ``k``
+    remade from its (T, H, W) labels, one per 8-connected piece (area, centroid and
+    inclusive box; each the score of the id's best row there)."""
+    mine = (
+        (instances["camera"] == camera) & (instances["frame"] == k)
+        & (instances["bubble"] == bubble)
+    )  # fmt: skip
+    if not mine.any():
+        return instances
+    score = float(instances.loc[mine, "score"].max())
+    comp, n = ndi.label(np.asarray(lab_stack[k]) == bubble, EIGHT)
+    rows = []
+    for j in range(1, n + 1):
+        ys, xs = np.nonzero(comp == j)
+        rows.append((k, camera, bubble, ys.size, xs.mean(), ys.mean(), xs.min(), ys.min(),
+                     xs.max(), ys.max(), score))  # fmt: skip
+    new = pd.DataFrame(rows, columns=["frame", "camera", "bubble", "area", "cx", "cy", "x0",
+                                      "y0", "x1", "y1", "score"])  # fmt: skip
+    out = pd.concat([instances[~mine], new.astype(instances.dtypes.to_dict())],
+                    ignore_index=True)  # fmt: skip
+    return out.sort_values(["frame", "camera", "bubble"], kind="stable").reset_index(drop=True)
+
+
+def grown_nucleation(
+    labels: dict[str, np.ndarray],
+    instances: pd.DataFrame,
+    stacks: Mapping[str, np.ndarray],
+    backgrounds: Mapping[str, tuple],
+    params: Mapping,
+    gap_px: int = 1,
+) -> pd.DataFrame:
+    """The nucleation region's pieces (id 0 of each camera's (T, H, W) ``labels``, at the
+    segmented resolution) grown in place to their outline in front of the plate
+    (:func:`surfphase.masks.classical.outline_in_front`; classical backend), each kept
+    ``gap_px`` pixels apart from the others (so that downscaled they stay apart), and
+    their rows of ``instances`` remade. After the association: it reads the silhouettes'
+    bottoms, which date a detachment, from the edge every instance has (a lower edge
+    keeps a just-detached bubble's silhouette on the plate's image longer)."""
+    if params["backend"] != "classical":
+        return instances
+    cp = params["classical"]
+    for name, lab in labels.items():
+        frames = np.flatnonzero((lab == 0).any(axis=(1, 2)))
+        if not frames.size:
+            continue
+        bg = backgrounds[name]
+        noise = classical.contrast_noise(stacks[name], cp, bg)
+        for t in frames:
+            signed = classical.relative_contrast(stacks[name][t], cp, bg, signed=True)
+            comp, n = ndi.label(lab[t] == 0, EIGHT)
+            for j in range(1, n + 1):
+                piece = comp == j
+                # Pieces stay apart: the mesh matches each view's pieces by centroid.
+                others = ndi.binary_dilation((lab[t] == 0) & ~piece, EIGHT, gap_px)
+                free = (lab[t] < 0) & ~others
+                new = classical.outline_in_front(piece, free, signed, bg[1], cp, noise)
+                lab[t][new & free] = 0
+            instances = refreshed_pieces(instances, lab, name, int(t))
+    return instances
+
+
 #: Bubbles whose silhouettes merely touch in a view, none in front of another, keep
 #: their silhouettes' centroids: their fitted circles count as overlapping when one
 #: hides at least this share of another's disc. Hiding a share h of a disc's edge moves
@@ -1134,6 +1204,11 @@ def run_mask_stage(ingest_dir: Path, out_dir: Path, params: Mapping | None = Non
             meta, ingest_dir, associated[~associated.bubble.isin(static)], anchor_tab,
             list(stacks),
         )  # fmt: skip
+    # Kept apart by a whole pixel of the fit's frames, downscaled (2 s − 1 native ones).
+    scale = max(
+        int(np.ceil(stacks[c].shape[k] / ingest.stacks[c].shape[k])) for c in stacks for k in (1, 2)
+    )
+    instances = grown_nucleation(bubble_labels, instances, stacks, bgs, p, 2 * scale - 1)
     if seg is not ingest:
         bubble_labels, instances = _to_fit_size(bubble_labels, instances, stacks, ingest.stacks)
     info = {
