@@ -1290,3 +1290,27 @@ def test_anchored_table_fills_a_frame_missing_within_a_track():
     grad = np.gradient(b1[["x", "y", "z"]].to_numpy(float), b1["time_s"].to_numpy(), axis=0)
     sure = b1["frame"].to_numpy() != 14
     assert np.allclose(grad[sure], b1[["vx", "vy", "vz"]].to_numpy(float)[sure], atol=1e-12)
+
+
+@pytest.mark.parametrize("height", [-0.0009, 0.0008])
+def test_nucleation_pieces_pair_above_the_plate_only(height):
+    """Two pieces of the nucleation region, one per view, that are the images of one
+    sphere: they agree (reprojection 0, sizes equal), and pair where that sphere's
+    centre is above the plate (y > 0), not where it is under it, millimetres in front
+    of the sites: what of an attached bubble the views see is above the plate."""
+    from surfphase.masks.anchors import agreeing_pieces, sphere_image
+
+    c0, c1 = _rig()
+    X, r = np.array([0.001, height, -0.008]), 0.0009
+    labs = []
+    for cam in (c0, c1):
+        u, v, rho = sphere_image(cam, X, r)
+        yy, xx = np.mgrid[0 : cam.height, 0 : cam.width]
+        lab = np.full((cam.height, cam.width), -1, np.int32)
+        lab[np.hypot(xx - u, yy - v) <= rho] = 0
+        labs.append(lab)
+    pairs = agreeing_pieces([c0, c1], labs[0], labs[1], 0)
+    if height > 0:
+        assert len(pairs) == 1 and np.allclose(pairs[0][0], X, atol=2e-5)
+    else:
+        assert pairs == []

@@ -210,16 +210,21 @@ def agreeing_pieces(
     are the same object: their centroids triangulate (undistorted ``cameras``) to a
     point that reprojects within :data:`PIECE_REPROJ_R` of each piece's equivalent
     radius, and the radii they give there differ by at most :data:`PIECE_SIZE_RATIO`;
-    best agreeing first, each piece in one pair. Per pair: ``(centre (3,) m, radius m,
-    mask in view 0, mask in view 1)``. The nucleation region holds every attached
-    bubble, and two views need not hold the same pieces of it (a speck on the plate's
-    edge in one view, a bubble hidden in the other)."""
+    best agreeing first, each piece in one pair, and the point above the plate (lab y >
+    0: what of an attached bubble the views see is above it). Per pair: ``(centre (3,)
+    m, radius m, mask in view 0, mask in view 1)``. The nucleation region holds every
+    attached bubble, and two views need not hold the same pieces of it (a speck on the
+    plate's edge in one view, a bubble hidden in the other). Sites along the plate's
+    edge lie on nearly one epipolar line: a piece of one site and a piece of another,
+    across the views, can agree in size and reproject better than either site's own
+    pair, their point millimetres in front of or behind them, and under the plate or
+    above it."""
     p0, p1 = silhouette_pieces(lab0, b), silhouette_pieces(lab1, b)
     cands = []
     for i, (u0, a0, _) in enumerate(p0):
         for j, (u1, a1, _) in enumerate(p1):
             sp = pair_sphere(cameras, [u0, u1], [a0, a1])
-            if pieces_agree(sp):
+            if pieces_agree(sp) and sp[0][1] > 0:
                 cands.append((sp[2], i, j, sp))
     used0, used1, out = set(), set(), []
     for _, i, j, sp in sorted(cands, key=lambda x: x[:3]):
