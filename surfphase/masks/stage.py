@@ -647,10 +647,21 @@ def refreshed_instances(
     score = old.groupby("bubble")["score"].max().to_dict()
     rows = []
     for b in np.unique(lab[lab >= 0]):
-        ys, xs = np.nonzero(lab == b)
         sc = score.get(int(b), max(score.values()) if score else float("nan"))
-        rows.append((k, camera, int(b), ys.size, xs.mean(), ys.mean(), xs.min(), ys.min(),
-                     xs.max(), ys.max(), float(sc)))  # fmt: skip
+        rows.append(_instance_row(k, camera, int(b), lab == b, float(sc)))
+    return _with_rows(instances, mine, rows)
+
+
+def _instance_row(k: int, camera: str, b: int, mask: np.ndarray, score: float) -> tuple:
+    """One row of ``instances.csv`` for the (H, W) bool ``mask`` of id ``b``."""
+    ys, xs = np.nonzero(mask)
+    return (k, camera, b, ys.size, xs.mean(), ys.mean(), xs.min(), ys.min(), xs.max(),
+            ys.max(), score)  # fmt: skip
+
+
+def _with_rows(instances: pd.DataFrame, mine: pd.Series, rows: list[tuple]) -> pd.DataFrame:
+    """``instances`` with its rows ``mine`` replaced by ``rows`` (:func:`_instance_row`),
+    sorted by frame, camera and id."""
     new = pd.DataFrame(rows, columns=["frame", "camera", "bubble", "area", "cx", "cy", "x0",
                                       "y0", "x1", "y1", "score"])  # fmt: skip
     out = pd.concat([instances[~mine], new.astype(instances.dtypes.to_dict())],
@@ -676,16 +687,8 @@ def refreshed_pieces(
         return instances
     score = float(instances.loc[mine, "score"].max())
     comp, n = ndi.label(np.asarray(lab_stack[k]) == bubble, EIGHT)
-    rows = []
-    for j in range(1, n + 1):
-        ys, xs = np.nonzero(comp == j)
-        rows.append((k, camera, bubble, ys.size, xs.mean(), ys.mean(), xs.min(), ys.min(),
-                     xs.max(), ys.max(), score))  # fmt: skip
-    new = pd.DataFrame(rows, columns=["frame", "camera", "bubble", "area", "cx", "cy", "x0",
-                                      "y0", "x1", "y1", "score"])  # fmt: skip
-    out = pd.concat([instances[~mine], new.astype(instances.dtypes.to_dict())],
-                    ignore_index=True)  # fmt: skip
-    return out.sort_values(["frame", "camera", "bubble"], kind="stable").reset_index(drop=True)
+    rows = [_instance_row(k, camera, bubble, comp == j, score) for j in range(1, n + 1)]
+    return _with_rows(instances, mine, rows)
 
 
 def grown_nucleation(
