@@ -740,7 +740,9 @@ def foreground_mask(
     own peak (95th percentile, off the static structure), which follows the true outline
     of a blurred shadow whatever its darkness. In front of the static structure
     (``static``, (H, W) bool), where a bubble's contrast against the dim plate is lower,
-    ``static_edge`` is the edge instead, and an object there is closed (a disc of
+    ``static_edge`` is the edge instead (never the lower of the two: with a few faint
+    off-plate pixels for its peak, an object on the plate took the plate's noise
+    about it), and an object there is closed (a disc of
     ``static_close_px``) before its holes are filled. Holes (bright cores) are filled,
     and cores the image's border cuts open (:func:`fill_holes_to_border`); with
     ``return_cores`` the filled holes are returned too, as a second (H, W) bool array:
@@ -787,7 +789,10 @@ def foreground_mask(
         st = static[sl] if static is not None else np.zeros(own.shape, bool)
         free = own & ~st
         peak = np.percentile(c[free] if free.sum() >= 4 else c[own], 95)
-        edge = ((c >= p["edge_frac"] * peak) | (st & (c >= p["static_edge"]))) & region
+        # In front of the plate the edge is static_edge alone: the folded contrast there
+        # holds the bright core's departure and the plate's noise, and an object mostly
+        # on the plate has its off-plate peak from a few faint pixels.
+        edge = np.where(st, c >= p["static_edge"], c >= p["edge_frac"] * peak) & region
         if close is not None and (own & st).any():
             # In front of the plate a bubble's dark rim and bright core are split by
             # the contrast's zero crossing, and its rim is faint where it meets the
