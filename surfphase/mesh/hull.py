@@ -229,6 +229,131 @@ def smooth_centres(
 MAX_HULL_VOXELS = 128
 
 
+#: A piece of the nucleation region one view shows apart while the other fuses it with
+#: a neighbour (:func:`hidden_pieces`): least number of the other view's pixels its
+#: sphere's image must explain that no agreeing pair's does (a 2 × 2 block; a speck
+#: on the plate's edge explains 1–3 anywhere in a large piece) ...
+HIDDEN_PIECE_MIN_PX = 4
+#: ... and least share of that image they must be.
+HIDDEN_PIECE_MIN_SHARE = 0.1
+#: ... and its sphere must meet the plate: its bottom at most this many radii above it
+#: (an attached bubble sits on it; a speck along the plate's edge fits anywhere).
+HIDDEN_PIECE_MAX_LIFT_R = 0.25
+#: Depths tried along the piece's ray (:func:`hidden_pieces`).
+HIDDEN_PIECE_STEPS = 200
+
+
+def hidden_pieces(
+    cameras: Sequence[Camera],
+    lab0: np.ndarray,
+    lab1: np.ndarray,
+    b: int,
+    pairs: Sequence[tuple],
+) -> list[tuple[np.ndarray, float, np.ndarray, np.ndarray, int]]:
+    """The whole pieces of id ``b`` that
+    :func:`~surfphase.masks.anchors.agreeing_pieces` left without a partner,
+    where the other view's silhouette fuses them with a piece that has one.
+
+    Two attached bubbles side by side can be two pieces in one view and one in the
+    other, where one stands in front of the other: the pair the views agree on is the
+    nearer bubble with the fused piece, and the other bubble had no mesh. Along the
+    unpaired piece's centroid ray (undistorted ``cameras``; depths over the span its
+    triangulations with the other view's id-``b`` box give, :data:`HIDDEN_PIECE_STEPS`),
+    the sphere of the piece's equivalent radius there, its centre above the plate (lab
+    y > 0) and its bottom within :data:`HIDDEN_PIECE_MAX_LIFT_R` of its radius of it, is
+    kept where its image in the other view lies on silhouettes (at least
+    :data:`~surfphase.masks.stage.MIN_DISC_ON_SILHOUETTE` of it: whatever hides a
+    bubble is a bubble too) and holds id-``b`` pixels that no pair's sphere image
+    (``pairs``: ``agreeing_pieces``' output) holds, at least
+    :data:`HIDDEN_PIECE_MIN_PX` and :data:`HIDDEN_PIECE_MIN_SHARE` of it; the depth
+    where it holds most of them (what of the fused outline no pair explains places it). Per piece found: ``(centre (3,) m, radius m,
+    mask in view 0, mask in view 1, index of the view that fuses it)``, the fusing
+    view's mask the image's id-``b`` pixels.
+    """
+    from surfphase.cameras import triangulate
+    from surfphase.masks.anchors import silhouette_pieces, sphere_image
+    from surfphase.masks.stage import MIN_DISC_ON_SILHOUETTE
+
+    if not pairs:
+        return []
+    labs = [np.asarray(lab0), np.asarray(lab1)]
+    out = []
+    for a in (0, 1):
+        o = 1 - a
+        used = [m0 if a == 0 else m1 for _, _, m0, m1 in pairs]
+        lab_o = labs[o]
+        ids_o = lab_o == b
+        if not ids_o.any():
+            continue
+        ca, co = cameras[a], cameras[o]
+        h, w = lab_o.shape
+        vv, uu = np.mgrid[0:h, 0:w]
+        explained = np.zeros((h, w), bool)
+        for X, r, _, _ in pairs:
+            c = sphere_image(co, X, r)
+            if c is not None:
+                explained |= np.hypot(uu - c[0], vv - c[1]) <= c[2]
+        rows, cols = np.nonzero(ids_o)
+        corners = np.array(
+            [[cols.min(), rows.min()], [cols.min(), rows.max()], [cols.max(), rows.min()],
+             [cols.max(), rows.max()]], np.float64,
+        )  # fmt: skip
+        ha, wa = labs[a].shape
+        for uv, area, mask in silhouette_pieces(labs[a], b):
+            if any((mask & m).any() for m in used):
+                continue
+            r_rows, r_cols = np.nonzero(mask)
+            if (
+                r_rows.min() == 0
+                or r_cols.min() == 0
+                or r_rows.max() == ha - 1
+                or r_cols.max() == wa - 1
+            ):
+                continue  # cut by the border: its centroid is not its centre's image
+            pts = triangulate([ca, co], [np.repeat(uv[None], 4, axis=0), corners])
+            depth = ca.world_to_camera(pts)[:, 2]
+            if not np.all(np.isfinite(depth)) or depth.max() <= 0:
+                continue
+            lo, hi = max(depth.min(), 1e-6), depth.max()
+            ray = ca.R.T @ np.linalg.solve(ca.K, np.array([uv[0], uv[1], 1.0]))
+            ray = ray / float((ca.R @ ray)[2])  # one metre of depth
+            f = float(np.sqrt(ca.K[0, 0] * ca.K[1, 1]))
+            best = None
+            for z in np.linspace(lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo), HIDDEN_PIECE_STEPS):
+                X = np.asarray(ca.center, np.float64) + z * ray
+                r = float(np.sqrt(area / np.pi)) * z / f
+                on_plate = 0 < X[1] <= r * (1.0 + HIDDEN_PIECE_MAX_LIFT_R)
+                c = sphere_image(co, X, r) if z > 0 and on_plate else None
+                if c is None:
+                    continue
+                disc = np.hypot(uu - c[0], vv - c[1]) <= c[2]
+                n = int(disc.sum())
+                if n == 0 or (disc & (lab_o >= 0)).sum() < MIN_DISC_ON_SILHOUETTE * n:
+                    continue
+                new = int((disc & ids_o & ~explained).sum())
+                if new < max(HIDDEN_PIECE_MIN_PX, HIDDEN_PIECE_MIN_SHARE * n):
+                    continue
+                if best is None or new > best[0]:
+                    best = (new, X, r, disc & ids_o)
+            if best is None:
+                continue
+            masks = (mask, best[3]) if a == 0 else (best[3], mask)
+            out.append((best[1], best[2], masks[0], masks[1], o))
+    return out
+
+
+def _sphere_disc(cam: Camera, X: np.ndarray, r: float, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool pixel centres inside the image of the sphere (``X`` (3,) m, ``r`` m)
+    in the undistorted ``cam`` (all False behind it)."""
+    from surfphase.masks.anchors import sphere_image
+
+    c = sphere_image(cam, X, r)
+    if c is None:
+        return np.zeros(shape, bool)
+    vv, uu = np.mgrid[0 : shape[0], 0 : shape[1]]
+    return np.hypot(uu - c[0], vv - c[1]) <= c[2]
+
+
 def bubble_pieces(
     cameras: Sequence[Camera], labels: Sequence[np.ndarray]
 ) -> list[tuple[int, np.ndarray, float, list[np.ndarray], bool]]:
@@ -244,8 +369,11 @@ def bubble_pieces(
     The nucleation region (:data:`~surfphase.masks.anchors.NUCLEATION_ID`) holds every
     attached bubble, and the two views need not hold the same pieces of it: one entry
     per pair of pieces the two views agree on
-    (:func:`surfphase.masks.anchors.agreeing_pieces`); with no such pair, its whole
-    silhouettes as one (``agree`` False).
+    (:func:`surfphase.masks.anchors.agreeing_pieces`), and one per piece left over that
+    the other view fuses with a paired one (:func:`hidden_pieces`:
+    its sphere's image there); with no such pair, its whole silhouettes as one
+    (``agree`` False). The last item, per view, is whether that view's silhouette is
+    shared with another entry (a fused piece: its area is not this entry's alone).
     """
     from surfphase.masks.anchors import (
         NUCLEATION_ID,
@@ -261,9 +389,22 @@ def bubble_pieces(
             continue
         found = []
         if b == NUCLEATION_ID:
-            found = [
-                (int(b), X, r, [m0, m1], True)
-                for X, r, m0, m1 in agreeing_pieces(cameras, lab0, lab1, int(b))
+            pairs = agreeing_pieces(cameras, lab0, lab1, int(b))
+            hidden = hidden_pieces(cameras, lab0, lab1, int(b), pairs)
+            for X, r, m0, m1 in pairs:
+                # A pair whose piece a hidden one's image lies on shares that silhouette,
+                # and leaves it what of that image lies outside its own sphere's.
+                masks, shared = [m0, m1], [False, False]
+                for h in hidden:
+                    k = h[4]
+                    if (masks[k] & h[2 + k]).any():
+                        shared[k] = True
+                        masks[k] = masks[k] & ~(
+                            h[2 + k] & ~_sphere_disc(cameras[k], X, r, masks[k].shape)
+                        )
+                found.append((int(b), X, r, masks, True, shared))
+            found += [
+                (int(b), X, r, [m0, m1], True, [o == 0, o == 1]) for X, r, m0, m1, o in hidden
             ]
         if not found:
             masks = [lab0 == b, lab1 == b]
@@ -275,7 +416,16 @@ def bubble_pieces(
             sp = pair_sphere(cameras, uvs, areas)
             if sp is not None and sp[1] > 0:
                 agree = pieces_agree(sp)
-                found = [(int(b), sp[0], sp[1], masks, bool(agree and b != NUCLEATION_ID))]
+                found = [
+                    (
+                        int(b),
+                        sp[0],
+                        sp[1],
+                        masks,
+                        bool(agree and b != NUCLEATION_ID),
+                        [False, False],
+                    )
+                ]
         out += found
     return out
 

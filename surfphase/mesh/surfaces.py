@@ -112,7 +112,8 @@ def hull_mesh_frame(
     (:func:`surfphase.mesh.hull.bubble_hull_volume`, ``hull_voxels_per_radius``), cut at
     the plate (``floor_y``) and cleaned; an id in several pieces (the nucleation region,
     id 0, can hold different pieces in each view) once per pair of pieces the two views
-    agree on (:func:`surfphase.mesh.hull.bubble_pieces`). Where the silhouettes'
+    agree on and per piece one view fuses with a paired one, as its sphere's image there
+    (:func:`surfphase.mesh.hull.bubble_pieces`). Where the silhouettes'
     centroids triangulate to no point both views see, ``hints`` (id → (3,) centre m,
     radius m; e.g. from the fit's surfels) place the search instead. A bubble (id ≥ 1)
     with a ``centres`` entry (id → (3,) m: its reported centre, the triangulated
@@ -131,13 +132,14 @@ def hull_mesh_frame(
     region, of ``hidden[0]``'s pixels, those that touch it (:func:`_touching`). With ``pieces`` (per view, (N, 3)
     centroid column, row and native area, pixels, of the nucleation region's whole
     pieces), each hull of the nucleation region is scaled in the same way to the areas
-    of the pieces whose centroids lie on its silhouette in each view: a bubble growing
-    on the plate is a few pixels across for most of its growth. Returns (V, 3) vertices
+    of the pieces whose centroids lie on its silhouette in each view, a view whose
+    piece it shares with another hull left out: a bubble growing on the plate is a few
+    pixels across for most of its growth. Returns (V, 3) vertices
     (m), (F, 3) faces and (V,) each vertex's bubble id.
     """
     views = [c.undistorted() for c in inputs]
     verts, faces, ids, n = [], [], [], 0
-    for b, centre, radius, masks, agree in bubble_pieces(views, labels):
+    for b, centre, radius, masks, agree, shared in bubble_pieces(views, labels):
         behind = (hidden or {}).get(b) if b >= 1 else _touching(hidden, b, masks)
         known = b in spared or (bool(centres) and b in centres) or behind is not None
         if p["hull_agreeing"] and b >= 1 and not (agree or known):
@@ -174,7 +176,10 @@ def hull_mesh_frame(
         v, f = drop_fragments(v, f, float(p["min_piece_frac"]))
         if len(f) and areas and b >= 1 and b in areas:
             centre_b = centres[b] if centres and b in centres else v.mean(axis=0)
-            seen = [k for k in range(len(views)) if behind is None or behind[k] is None]
+            seen = [
+                k for k in range(len(views))
+                if (behind is None or behind[k] is None) and not shared[k]
+            ]  # fmt: skip
             v = scale_to_silhouettes(
                 v, f, [views[k] for k in seen], [areas[b][k] for k in seen], centre_b,
                 tuple(p["hull_area_limits"]),
@@ -183,7 +188,10 @@ def hull_mesh_frame(
                 v[:, 1] = np.maximum(v[:, 1], float(p["floor_y"]))
         elif len(f) and pieces is not None and b == NUCLEATION_ID:
             native = [_area_on(m, pc) for m, pc in zip(masks, pieces, strict=False)]
-            seen = [k for k in range(len(views)) if behind is None or behind[k] is None]
+            seen = [
+                k for k in range(len(views))
+                if (behind is None or behind[k] is None) and not shared[k]
+            ]  # fmt: skip
             if len(native) == len(views) and all(native[k] > 0 for k in seen):
                 v = scale_to_silhouettes(
                     v, f, [views[k] for k in seen], [native[k] for k in seen], v.mean(axis=0),
