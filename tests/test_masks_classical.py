@@ -434,12 +434,13 @@ def test_outline_in_front_grows_by_a_dark_rim_only():
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_in_front_of_the_plate_the_edge_is_static_edge_whatever_the_off_plate_peak(seed):
+def test_in_front_of_the_plate_the_edge_is_not_set_by_a_few_faint_off_plate_pixels(seed):
     """A bubble in front of the plate (folded contrast 0.6 on a disc of radius 7 px)
     whose detection reaches two faint rows (0.12) past the plate's edge, on a plate
-    whose folded noise is mostly under ``static_edge``: its outline is the disc. Half
-    the peak of those few off-plate pixels, as the edge in front of the plate too, took
-    the plate's noise about it (the disc and a ring of noise pixels round it)."""
+    whose folded noise is mostly under ``static_edge``: its outline is the disc. In
+    front of the plate the edge is ``static_edge``, or half the object's peak over all
+    its pixels where lower; half the peak of those few off-plate pixels (0.06) took the
+    plate's noise about it (the disc and a ring of noise pixels round it)."""
     h = w = 48
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     static = yy >= 16
