@@ -431,28 +431,3 @@ def test_outline_in_front_grows_by_a_dark_rim_only():
             assert (out == disc).mean() > 0.99 and (out & ~disc).sum() == 0
         else:
             assert (out == core).all()
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_in_front_of_the_plate_the_edge_is_not_set_by_a_few_faint_off_plate_pixels(seed):
-    """A bubble in front of the plate (folded contrast 0.6 on a disc of radius 7 px)
-    whose detection reaches two faint rows (0.12) past the plate's edge, on a plate
-    whose folded noise is mostly under ``static_edge``: its outline is the disc. In
-    front of the plate the edge is ``static_edge``, or half the object's peak over all
-    its pixels where lower; half the peak of those few off-plate pixels (0.06) took the
-    plate's noise about it (the disc and a ring of noise pixels round it)."""
-    h = w = 48
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    static = yy >= 16
-    rng = np.random.default_rng(seed)
-    contrast = np.where(static, np.abs(rng.normal(0.0, 0.08, (h, w))), 0.0)
-    disc = np.hypot(xx - 24, yy - 23) <= 7.0
-    contrast[disc] = 0.6
-    contrast[(yy >= 14) & (yy < 16) & (np.abs(xx - 24) <= 2)] = 0.12
-    contrast = contrast.astype(np.float32)
-    p = {**CLASSICAL_DEFAULTS, "static_close_px": 0}
-    fg = classical.foreground_mask(contrast, p, static)
-    comp, _ = ndi.label(fg)
-    piece = comp == comp[23, 24]
-    assert (piece & static & ~disc).sum() <= 2, (piece & static & ~disc).sum()
-    assert (disc & ~piece).sum() <= 4  # the disc's four one-pixel tips (the 2×2 opening)

@@ -740,11 +740,7 @@ def foreground_mask(
     own peak (95th percentile, off the static structure), which follows the true outline
     of a blurred shadow whatever its darkness. In front of the static structure
     (``static``, (H, W) bool), where a bubble's contrast against the dim plate is lower,
-    ``static_edge`` is the edge instead, or ``edge_frac`` of the object's peak over all
-    its pixels where that is lower (a faint object; never the fraction of its off-plate
-    pixels' peak: a few faint pixels its detection reached past the plate's edge set
-    it under the plate's noise about a bubble sitting on it), and an object there is
-    closed (a disc of
+    ``static_edge`` is the edge instead, and an object there is closed (a disc of
     ``static_close_px``) before its holes are filled. Holes (bright cores) are filled,
     and cores the image's border cuts open (:func:`fill_holes_to_border`); with
     ``return_cores`` the filled holes are returned too, as a second (H, W) bool array:
@@ -790,13 +786,8 @@ def foreground_mask(
         c = contrast[sl]
         st = static[sl] if static is not None else np.zeros(own.shape, bool)
         free = own & ~st
-        whole = np.percentile(c[own], 95)
-        peak = np.percentile(c[free], 95) if free.sum() >= 4 else whole
-        # In front of the plate the edge is static_edge, or lower for a faint object: its
-        # own peak's fraction there, never that of a few faint pixels past the plate's
-        # edge, which took the plate's noise about a bubble sitting on it.
-        on_plate = min(p["static_edge"], p["edge_frac"] * whole)
-        edge = np.where(st, c >= on_plate, c >= p["edge_frac"] * peak) & region
+        peak = np.percentile(c[free] if free.sum() >= 4 else c[own], 95)
+        edge = ((c >= p["edge_frac"] * peak) | (st & (c >= p["static_edge"]))) & region
         if close is not None and (own & st).any():
             # In front of the plate a bubble's dark rim and bright core are split by
             # the contrast's zero crossing, and its rim is faint where it meets the
