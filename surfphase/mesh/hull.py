@@ -266,9 +266,10 @@ def hidden_pieces(
     bubble is a bubble too) and holds id-``b`` pixels that no pair's sphere image
     (``pairs``: ``agreeing_pieces``' output) holds, at least
     :data:`HIDDEN_PIECE_MIN_PX` and :data:`HIDDEN_PIECE_MIN_SHARE` of it; the depth
-    where it holds most of them (what of the fused outline no pair explains places it). Per piece found: ``(centre (3,) m, radius m,
-    mask in view 0, mask in view 1, index of the view that fuses it)``, the fusing
-    view's mask the image's id-``b`` pixels.
+    where it holds most of them (what of the fused outline no pair explains places
+    it). Per piece found: ``(centre (3,) m, radius m, mask in view 0, mask in view 1,
+    index of the view that fuses it)``, the fusing view's mask the image's id-``b``
+    pixels.
     """
     from surfphase.cameras import triangulate
     from surfphase.masks.anchors import silhouette_pieces, sphere_image
@@ -290,9 +291,7 @@ def hidden_pieces(
         vv, uu = np.mgrid[0:h, 0:w]
         explained = np.zeros((h, w), bool)
         for X, r, _, _ in pairs:
-            c = sphere_image(co, X, r)
-            if c is not None:
-                explained |= np.hypot(uu - c[0], vv - c[1]) <= c[2]
+            explained |= _sphere_disc(co, X, r, (h, w))
         rows, cols = np.nonzero(ids_o)
         corners = np.array(
             [[cols.min(), rows.min()], [cols.min(), rows.max()], [cols.max(), rows.min()],
@@ -356,7 +355,7 @@ def _sphere_disc(cam: Camera, X: np.ndarray, r: float, shape: tuple[int, int]) -
 
 def bubble_pieces(
     cameras: Sequence[Camera], labels: Sequence[np.ndarray]
-) -> list[tuple[int, np.ndarray, float, list[np.ndarray], bool]]:
+) -> list[tuple[int, np.ndarray, float, list[np.ndarray], bool, list[bool]]]:
     """Where each bubble is, roughly, and what of each view's labels is it.
 
     Per id ≥ 1 that both views' labels show: ``(id, centre, radius, masks, agree)``,
