@@ -174,12 +174,13 @@ def hull_mesh_frame(
             v, f, float(p["min_component_m"]), int(p["smooth_steps"]), int(p["max_hole_edges"])
         )
         v, f = drop_fragments(v, f, float(p["min_piece_frac"]))
+        # The views whose silhouette is this hull's own: none behind others, none shared.
+        seen = [
+            k for k in range(len(views))
+            if (behind is None or behind[k] is None) and not shared[k]
+        ]  # fmt: skip
         if len(f) and areas and b >= 1 and b in areas:
             centre_b = centres[b] if centres and b in centres else v.mean(axis=0)
-            seen = [
-                k for k in range(len(views))
-                if (behind is None or behind[k] is None) and not shared[k]
-            ]  # fmt: skip
             v = scale_to_silhouettes(
                 v, f, [views[k] for k in seen], [areas[b][k] for k in seen], centre_b,
                 tuple(p["hull_area_limits"]),
@@ -188,10 +189,6 @@ def hull_mesh_frame(
                 v[:, 1] = np.maximum(v[:, 1], float(p["floor_y"]))
         elif len(f) and pieces is not None and b == NUCLEATION_ID:
             native = [_area_on(m, pc) for m, pc in zip(masks, pieces, strict=False)]
-            seen = [
-                k for k in range(len(views))
-                if (behind is None or behind[k] is None) and not shared[k]
-            ]  # fmt: skip
             if len(native) == len(views) and all(native[k] > 0 for k in seen):
                 v = scale_to_silhouettes(
                     v, f, [views[k] for k in seen], [native[k] for k in seen], v.mean(axis=0),
