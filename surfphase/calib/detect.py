@@ -102,6 +102,53 @@ def detect_corners(
     )
 
 
+#: Ids of :func:`marker_corners`' points: ``MARKER_CORNER_ID0 + 4 · marker id + k``
+#: (k: the marker's corner, clockwise from its top left), apart from ChArUco corner ids.
+MARKER_CORNER_ID0 = 100_000
+
+
+def marker_corners(
+    image: np.ndarray,
+    board: BoardSpec,
+    detector: cv2.aruco.CharucoDetector | None = None,
+    order: tuple[bool, ...] = (False, True),
+) -> tuple[Detection, bool]:
+    """The four corners of each of ``board``'s markers found whole in ``image`` (H, W),
+    as points of the board (ids :data:`MARKER_CORNER_ID0` on), and whether they were
+    found inverted (polarities as :func:`detect_view`; the try with the most markers).
+
+    ChArUco corners are placed between two markers found in the image, so a board
+    whose view holds only a few of its squares, each marker at the image's edge cut
+    open, gives two or three of them; its whole markers still give four points each,
+    less precise than chessboard corners (a marker's own corners, refined to sub-pixel).
+    """
+    detector = detector or make_detector(board)
+    cb = detector.getBoard()
+    all_ids = cb.getIds().ravel().astype(int)
+    obj_all = cb.getObjPoints()
+    tries = (bool(board.inverted),) if board.inverted is not None else order
+    best = (Detection(np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros((0, 3))), tries[0])
+    for inverted in tries:
+        _, _, corners, ids = detector.detectBoard(255 - image if inverted else image)
+        if ids is None or len(ids) <= len(best[0]) // 4:
+            continue
+        pts, obj, out_ids = [], [], []
+        for c, i in zip(corners, ids.ravel().astype(int), strict=True):
+            k = int(np.flatnonzero(all_ids == i)[0])
+            pts.append(np.asarray(c, np.float64).reshape(4, 2))
+            obj.append(np.asarray(obj_all[k], np.float64).reshape(4, 3))
+            out_ids.append(MARKER_CORNER_ID0 + 4 * i + np.arange(4))
+        best = (
+            Detection(
+                ids=np.concatenate(out_ids).astype(np.int32),
+                image_points=np.concatenate(pts),
+                object_points=np.concatenate(obj),
+            ),
+            inverted,
+        )
+    return best
+
+
 def usable(det: Detection, min_corners: int = 4) -> str | None:
     """Why a detection cannot be used for calibration, or None if it can.
 

@@ -41,7 +41,14 @@ import numpy as np
 from surfphase.calib import checks, joint
 from surfphase.calib.board import BoardSpec, load_board
 from surfphase.calib.bundle import _covariance, _rms, _uncertainties
-from surfphase.calib.detect import Detection, detect_view, diagnose, make_detector, usable
+from surfphase.calib.detect import (
+    Detection,
+    detect_view,
+    diagnose,
+    make_detector,
+    marker_corners,
+    usable,
+)
 from surfphase.calib.sources import FrameSource, open_sources
 from surfphase.cameras import Camera
 
@@ -158,12 +165,14 @@ def single_camera(
 
 
 def _detect(sources, board, min_corners, min_images, where):
-    """Corners in every view: (detections, rejected, sizes, polarity counts)."""
+    """Corners in every view: (detections, rejected, sizes, polarity counts, the
+    cameras whose reference view is its whole markers' corners: ``{camera: warning}``)."""
     detector = make_detector(board)
     detections: dict[str, dict[str, Detection]] = {}
     rejected: dict[str, list[dict]] = {}
     sizes: dict[str, tuple[int, int]] = {}
     polarity: dict[str, dict[str, int]] = {}
+    markers_only: dict[str, str] = {}
     for n, src in sources.items():
         detections[n], rejected[n] = {}, []
         polarity[n] = {"normal": 0, "inverted": 0}
@@ -183,6 +192,20 @@ def _detect(sources, board, min_corners, min_images, where):
                 order = order[:1]
             det, inverted = detect_view(img, board, detector, min_corners, order)
             why = usable(det, min_corners)
+            if why is not None and name == board.reference_image:
+                # The lab frame's view: its board standing at the bubbles may fill a
+                # narrow view, which then holds too few ChArUco corners; the corners
+                # of its whole markers give its pose.
+                alt, alt_inverted = marker_corners(img, board, detector, order)
+                if usable(alt, min_corners) is None:
+                    markers_only[n] = (
+                        f"{where}{n}: the reference image {name} holds {len(det)} ChArUco "
+                        f"corner(s) (need {min_corners}): the board is only partly in "
+                        f"view; its pose, and the lab frame, come from the corners of its "
+                        f"{len(alt) // 4} whole markers, which are less precise "
+                        f"({src.path})"
+                    )
+                    det, inverted, why = alt, alt_inverted, None
             if why is None:
                 detections[n][name] = det
                 polarity[n]["inverted" if inverted else "normal"] += 1
@@ -206,7 +229,7 @@ def _detect(sources, board, min_corners, min_images, where):
                 if len(causes) > 1:
                     msg += "; also possible: " + "; ".join(causes[1:])
             raise ValueError(msg)
-    return detections, rejected, sizes, polarity
+    return detections, rejected, sizes, polarity, markers_only
 
 
 @_single_opencv_thread
@@ -261,8 +284,10 @@ def calibrate_rig_detailed(
         paths, timestamps, max_frames or MAX_FRAMES, sync_tolerance, where=where
     )
     names = list(sources)
-    detections, rejected, sizes, polarity = _detect(sources, board, min_corners, min_images, where)
-    warn: list[str] = []
+    detections, rejected, sizes, polarity, markers_only = _detect(
+        sources, board, min_corners, min_images, where
+    )
+    warn: list[str] = list(markers_only.values())
     if sync.get("warning"):
         warn.append(f"{where}{sync['warning']}")
     # Step 2: each camera alone.
@@ -308,6 +333,7 @@ def calibrate_rig_detailed(
     report.update(
         _report_extra(board, sync, split, polarity, single, names, check, bool(moved), warn)
     )
+    report["reference_from_markers"] = sorted(markers_only)
     cal = Calibration(cameras, report, sources, detections, residuals)
     cal.single = {n: (single[n][0], single[n][1]) for n in names}
     return cal
