@@ -653,6 +653,25 @@ def ring_hulls(
     return comp, hulls
 
 
+#: Fewest pixels, and least share of its ring's, of a core that :func:`open_ring_core`
+#: finds for :func:`foreground_mask` to take the ring's hull.
+OPEN_RING_MIN_PX = 4
+OPEN_RING_MIN_SHARE = 0.05
+
+
+def open_ring_core(
+    edge: np.ndarray, static: np.ndarray, at_border: tuple[bool, bool, bool, bool]
+) -> np.ndarray:
+    """(h, w) bool: the pixels off the plate that an object's ``edge`` (bool (h, w),
+    a crop) encloses together with the plate (``static``, bool (h, w)) but not alone,
+    within the edge's convex hull: the core of a bubble in front of the plate's edge
+    whose dark ring the plate's low contrast left open (``at_border``: as for
+    :func:`fill_holes_to_border`)."""
+    closed = fill_holes_to_border(edge | static, at_border)
+    alone = fill_holes_to_border(edge, at_border)
+    return closed & ~alone & ~static & convex_hull_image(edge)
+
+
 def fill_holes_to_border(mask: np.ndarray, at_border: tuple[bool, bool, bool, bool]) -> np.ndarray:
     """``mask`` (bool (h, w), a crop of one object) with its holes filled, the crop's
     sides flagged in ``at_border`` (top, bottom, left, right: the image's border)
@@ -741,7 +760,9 @@ def foreground_mask(
     of a blurred shadow whatever its darkness. In front of the static structure
     (``static``, (H, W) bool), where a bubble's contrast against the dim plate is lower,
     ``static_edge`` is the edge instead, and an object there is closed (a disc of
-    ``static_close_px``) before its holes are filled. Holes (bright cores) are filled,
+    ``static_close_px``) before its holes are filled; with ``static_ring_hull`` a ring
+    left open there (:func:`ring_hulls`, :func:`open_ring_core`) is the hull of its
+    edge. Holes (bright cores) are filled,
     and cores the image's border cuts open (:func:`fill_holes_to_border`); with
     ``return_cores`` the filled holes are returned too, as a second (H, W) bool array:
     one core per bubble that shows one. ``noise`` ((H, W), the detection contrast's
@@ -801,6 +822,15 @@ def foreground_mask(
         if k in hulls and (edge & hulls[k][sl]).sum() >= 3:
             # An open ring around its core: the outline is the hull of the ring's edge.
             filled = convex_hull_image(edge & hulls[k][sl])
+        elif p["static_ring_hull"] and (own & st).any() and edge.sum() >= 3:
+            # A ring left open where it meets the plate, around a core seen against the
+            # backlight that nothing detected: the core is a hole of the ring and the
+            # plate together, not of the ring; the outline is the hull of the ring.
+            core = open_ring_core(edge, st, at_border)
+            if core.sum() >= max(OPEN_RING_MIN_PX, OPEN_RING_MIN_SHARE * edge.sum()) and (
+                (filled & ~edge).sum() < core.sum()
+            ):
+                filled = convex_hull_image(edge) | filled
         fg[sl] |= filled
         cores[sl] |= filled & ~edge
     fg = ndi.binary_opening(fg, structure=np.ones((2, 2), bool))

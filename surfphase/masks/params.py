@@ -44,7 +44,9 @@ CLASSICAL_DEFAULTS: dict = {
     # the static structure (0: none).
     "static_close_px": 2,
     # In front of the static structure, an object whose convex hull holds another (a
-    # dark ring left open around its bright core) is one bubble: the hull of its edge.
+    # dark ring left open around its bright core), or whose ring encloses a core seen
+    # against the backlight only together with the plate (its bottom, in front of the
+    # plate, too faint to be edge), is one bubble: the hull of its edge.
     "static_ring_hull": True,
     # Where the background itself is darker than this (black plate sides), nothing is seen.
     "background_floor": 0.08,
