@@ -134,10 +134,14 @@ def marker_corners(
             continue
         pts, obj, out_ids = [], [], []
         for c, i in zip(corners, ids.ravel().astype(int), strict=True):
+            if not (all_ids == i).any():  # a marker of the dictionary, not of this board
+                continue
             k = int(np.flatnonzero(all_ids == i)[0])
             pts.append(np.asarray(c, np.float64).reshape(4, 2))
             obj.append(np.asarray(obj_all[k], np.float64).reshape(4, 3))
             out_ids.append(MARKER_CORNER_ID0 + 4 * i + np.arange(4))
+        if len(pts) <= len(best[0]) // 4:
+            continue
         best = (
             Detection(
                 ids=np.concatenate(out_ids).astype(np.int32),

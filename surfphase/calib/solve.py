@@ -177,6 +177,7 @@ def _detect(sources, board, min_corners, min_images, where):
         detections[n], rejected[n] = {}, []
         polarity[n] = {"normal": 0, "inverted": 0}
         missing = []
+        reference = None
         for name, img in src.iter_views():
             shape = (img.shape[1], img.shape[0])
             if sizes.setdefault(n, shape) != shape:
@@ -193,19 +194,7 @@ def _detect(sources, board, min_corners, min_images, where):
             det, inverted = detect_view(img, board, detector, min_corners, order)
             why = usable(det, min_corners)
             if why is not None and name == board.reference_image:
-                # The lab frame's view: its board standing at the bubbles may fill a
-                # narrow view, which then holds too few ChArUco corners; the corners
-                # of its whole markers give its pose.
-                alt, alt_inverted = marker_corners(img, board, detector, order)
-                if usable(alt, min_corners) is None:
-                    markers_only[n] = (
-                        f"{where}{n}: the reference image {name} holds {len(det)} ChArUco "
-                        f"corner(s) (need {min_corners}): the board is only partly in "
-                        f"view; its pose, and the lab frame, come from the corners of its "
-                        f"{len(alt) // 4} whole markers, which are less precise "
-                        f"({src.path})"
-                    )
-                    det, inverted, why = alt, alt_inverted, None
+                reference = (name, img, len(det), order)
             if why is None:
                 detections[n][name] = det
                 polarity[n]["inverted" if inverted else "normal"] += 1
@@ -213,6 +202,23 @@ def _detect(sources, board, min_corners, min_images, where):
                 rejected[n].append({"image": name, "reason": why})
                 if why == "board not found" or len(det) < min_corners:
                     missing.append(name)
+        if reference is not None and len(detections[n]) >= min_images:
+            # The lab frame's view, where the board as described is found in the
+            # camera's other views: standing at the bubbles it may fill a narrow view,
+            # which then holds too few ChArUco corners; its whole markers' corners give
+            # its pose.
+            name, img, corners, order = reference
+            alt, inverted = marker_corners(img, board, detector, order)
+            if usable(alt, min_corners) is None:
+                detections[n][name] = alt
+                polarity[n]["inverted" if inverted else "normal"] += 1
+                rejected[n] = [r for r in rejected[n] if r["image"] != name]
+                markers_only[n] = (
+                    f"{where}{n}: the reference image {name} holds {corners} ChArUco "
+                    f"corner(s) (need {min_corners}): the board is only partly in view; "
+                    f"its pose, and the lab frame, come from the corners of its "
+                    f"{len(alt) // 4} whole markers, which are less precise ({src.path})"
+                )
         found = len(detections[n])
         if found < min_images:
             spaced = np.linspace(0, len(missing) - 1, min(DIAGNOSE_VIEWS, len(missing)))
