@@ -109,19 +109,30 @@ def _open_ring_frame(gap_deg: float, seed: int):
     degrees at its top, where it meets the plate's rim; camera noise 0.03. Returns the
     frame, the background (the frame without the bubble or the noise), the plate and the
     true disc."""
-    rng = np.random.default_rng(seed)
-    h, w = 96, 128
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    plate = yy >= 56
-    clean = np.where(plate, 0.25, 0.8)
-    d = np.hypot(xx - 64.0, yy - 70.0)
+    yy, xx, plate, clean, d = _plate_scene(56, 70.0)
     up = np.degrees(np.arctan2(-(yy - 70.0), np.abs(xx - 64.0) + 1e-9))  # 90 at the top
     ring = (d <= 8.0) & (d > 4.5) & ~(up > 90 - gap_deg / 2)
     img = np.where(ring, 0.12, clean)
     img = np.where(d <= 2.0, 0.55, img)
-    img = cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0, 0.03, (h, w))
+    return _shot(img, clean, seed) + (plate, d <= 8.0)
+
+
+def _plate_scene(plate_row: int, centre_row: float):
+    """A (96, 128) scene: pixel rows and columns ``yy, xx``, the plate (rows from
+    ``plate_row`` down), the backlight 0.8 over the plate's 0.25 (``clean``) and each
+    pixel's distance ``d`` from a bubble centred at column 64, row ``centre_row``."""
+    yy, xx = np.mgrid[0:96, 0:128].astype(np.float64)
+    plate = yy >= plate_row
+    return yy, xx, plate, np.where(plate, 0.25, 0.8), np.hypot(xx - 64.0, yy - centre_row)
+
+
+def _shot(img: np.ndarray, clean: np.ndarray, seed: int):
+    """``(frame, background)`` float32: ``img`` and ``clean`` blurred (σ 0.8 px), the
+    frame with camera noise 0.03 (``seed``), clipped to [0, 1]."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0, 0.03, img.shape)
     clean = cv2.GaussianBlur(clean, (0, 0), 0.8)
-    return np.clip(img, 0, 1).astype(np.float32), clean.astype(np.float32), plate, d <= 8.0
+    return np.clip(img, 0, 1).astype(np.float32), clean.astype(np.float32)
 
 
 def test_ring_left_open_in_front_of_the_plate_is_one_bubble():
@@ -157,17 +168,10 @@ def _ring_open_at_the_plate_frame(seed: int, faint: float = 0.22):
     behind it (backlight, then plate); camera noise 0.03. Returns the frame, the
     background (the frame without the bubble or the noise), the plate and the true
     disc."""
-    rng = np.random.default_rng(seed)
-    h, w = 96, 128
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    plate = yy >= 55
-    clean = np.where(plate, 0.25, 0.8)
-    d = np.hypot(xx - 64.0, yy - 52.0)
+    _, _, plate, clean, d = _plate_scene(55, 52.0)
     ring = (d <= 8.0) & (d > 4.5)
     img = np.where(ring, np.where(plate, faint, 0.12), clean)
-    img = cv2.GaussianBlur(img, (0, 0), 0.8) + rng.normal(0, 0.03, (h, w))
-    clean = cv2.GaussianBlur(clean, (0, 0), 0.8)
-    return np.clip(img, 0, 1).astype(np.float32), clean.astype(np.float32), plate, d <= 8.0
+    return _shot(img, clean, seed) + (plate, d <= 8.0)
 
 
 def test_a_ring_left_open_by_the_plate_keeps_its_core():
@@ -203,8 +207,11 @@ def test_an_open_ring_core_is_what_the_plate_and_the_ring_enclose_together():
     d = np.hypot(xx - 15, yy - 12)
     static = yy >= 18
     horseshoe = (d > 4) & (d <= 8) & ~((yy > 12) & (np.abs(xx - 15) < 4))
-    core = classical.open_ring_core(horseshoe, static, (False,) * 4)
+    core = classical.open_ring_core(
+        horseshoe, classical.fill_holes_to_border(horseshoe, (False,) * 4), static, (False,) * 4
+    )
     expected = (d <= 8) & ~horseshoe & ~static & ((d <= 4) | (yy > 12))
     np.testing.assert_array_equal(core, expected)
     closed = (d > 4) & (d <= 8)
-    assert not classical.open_ring_core(closed, static, (False,) * 4).any()
+    filled = classical.fill_holes_to_border(closed, (False,) * 4)
+    assert not classical.open_ring_core(closed, filled, static, (False,) * 4).any()

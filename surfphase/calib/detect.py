@@ -130,13 +130,14 @@ def marker_corners(
     best = (Detection(np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros((0, 3))), tries[0])
     for inverted in tries:
         _, _, corners, ids = detector.detectBoard(255 - image if inverted else image)
-        if ids is None or len(ids) <= len(best[0]) // 4:
+        if ids is None:
             continue
         pts, obj, out_ids = [], [], []
         for c, i in zip(corners, ids.ravel().astype(int), strict=True):
-            if not (all_ids == i).any():  # a marker of the dictionary, not of this board
+            hit = np.flatnonzero(all_ids == i)
+            if not hit.size:  # a marker of the dictionary, not of this board
                 continue
-            k = int(np.flatnonzero(all_ids == i)[0])
+            k = int(hit[0])
             pts.append(np.asarray(c, np.float64).reshape(4, 2))
             obj.append(np.asarray(obj_all[k], np.float64).reshape(4, 3))
             out_ids.append(MARKER_CORNER_ID0 + 4 * i + np.arange(4))

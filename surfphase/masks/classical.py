@@ -660,16 +660,19 @@ OPEN_RING_MIN_SHARE = 0.05
 
 
 def open_ring_core(
-    edge: np.ndarray, static: np.ndarray, at_border: tuple[bool, bool, bool, bool]
+    edge: np.ndarray,
+    filled: np.ndarray,
+    static: np.ndarray,
+    at_border: tuple[bool, bool, bool, bool],
 ) -> np.ndarray:
     """(h, w) bool: the pixels off the plate that an object's ``edge`` (bool (h, w),
-    a crop) encloses together with the plate (``static``, bool (h, w)) but not alone,
+    a crop) encloses together with the plate (``static``, bool (h, w)) but not alone
+    (``filled``: ``edge`` with its own holes filled, :func:`fill_holes_to_border`),
     within the edge's convex hull: the core of a bubble in front of the plate's edge
     whose dark ring the plate's low contrast left open (``at_border``: as for
     :func:`fill_holes_to_border`)."""
-    closed = fill_holes_to_border(edge | static, at_border)
-    alone = fill_holes_to_border(edge, at_border)
-    return closed & ~alone & ~static & convex_hull_image(edge)
+    core = fill_holes_to_border(edge | static, at_border) & ~filled & ~static
+    return core & convex_hull_image(edge) if core.any() else core
 
 
 def fill_holes_to_border(mask: np.ndarray, at_border: tuple[bool, bool, bool, bool]) -> np.ndarray:
@@ -826,7 +829,7 @@ def foreground_mask(
             # A ring left open where it meets the plate, around a core seen against the
             # backlight that nothing detected: the core is a hole of the ring and the
             # plate together, not of the ring; the outline is the hull of the ring.
-            core = open_ring_core(edge, st, at_border)
+            core = open_ring_core(edge, filled, st, at_border)
             if core.sum() >= max(OPEN_RING_MIN_PX, OPEN_RING_MIN_SHARE * edge.sum()) and (
                 (filled & ~edge).sum() < core.sum()
             ):
