@@ -406,3 +406,56 @@ def test_a_free_bubble_fused_in_the_other_view_does_not_land_on_the_plate():
     assert freed(heights) == hidden
     on_plate = np.where(np.arange(len(heights)) < len(heights) - 1, 0.0, heights)
     assert freed(on_plate) == set()
+
+
+@pytest.mark.parametrize("lift_mm", [0.0, 0.4])
+def test_a_bubble_the_bottom_border_cuts_has_the_bottom_of_its_circle(lift_mm):
+    """A 0.6 mm sphere whose bottom is ``lift_mm`` above the plate, seen by the two-view
+    rig at 512 px (18 px radius), each view cut a fifth of the sphere's image radius
+    below its centre's row: the plate lies below the frame, the image's bottom border
+    cuts the silhouettes and their lowest rows triangulate 0.3 mm or more above the
+    sphere's bottom, a bubble on the plate then called free. The bottoms of the
+    circles of the cut outlines triangulate to the sphere's bottom (analytic) within
+    0.04 mm, and to the whole silhouettes' bottoms within 0.03 mm (a pixel there is
+    0.033 mm): on the plate, the nucleation region; 0.4 mm above it, free."""
+    from test_masks_scene import draw_view
+
+    from surfphase.cameras import triangulate
+    from surfphase.masks.associate import border_bottom, bottom_heights, instance_table
+
+    cams = rig(512)
+    r = 0.6e-3
+    X = np.array([0.0, r + lift_mm * 1e-3, 0.0])
+    whole, cut = {}, {}
+    for c, cam in cams.items():
+        _, truth = draw_view(cam, [(X, r)], seed=0)
+        ((_, v),) = cam.project(X[None], distort=False)
+        rp = cam.K[0, 0] * r / cam.world_to_camera(X[None])[0, 2]
+        keep = int(v + 0.2 * rp)
+        whole[c] = np.where(truth == 0, 0, -1)[None]
+        cut[c] = whole[c][:, :keep]
+        ys, xs = np.nonzero(cut[c][0] == 0)
+        assert ys.max() == keep - 1  # the border cuts it
+        assert border_bottom(ys, xs, (keep, truth.shape[1]), 0.08)[1] > keep - 1 + 0.5 * rp
+        ys, xs = np.nonzero(whole[c][0] == 0)
+        assert border_bottom(ys, xs, truth.shape, 0.08) is None  # not cut: no circle
+    pairs = pd.DataFrame([(0, 0, 0, 0.1)], columns=["frame", "local_a", "local_b", "cost"])
+    pair = (cams["cam0"], cams["cam1"])
+
+    def heights(labels):
+        inst = pd.concat(
+            [instance_table(labels[c], [np.ones(1)], c) for c in cams], ignore_index=True
+        )
+        rows = [inst[inst.camera == c][["bot_u", "bot_v"]].to_numpy(float) for c in cams]
+        border = triangulate(list(pair), rows)[0, 1]
+        return bottom_heights(inst, pairs, "cam0", "cam1", pair)[0], border
+
+    h_cut, h_border = heights(cut)
+    h_whole, _ = heights(whole)
+    lift = lift_mm * 1e-3
+    assert h_border > lift + 0.3e-3
+    assert abs(h_cut - lift) < 0.04e-3
+    assert abs(h_cut - h_whole) < 0.03e-3
+    low = ASSOCIATE_DEFAULTS["nucleation_height"]
+    assert bool(h_cut < low) == (lift_mm == 0.0)
+    assert h_border > low

@@ -12,7 +12,11 @@ Instances come from a segmentation backend as per-camera label stacks
    the Hungarian algorithm and gated.
 2. **Nucleation region.** A paired instance whose silhouette bottom triangulates to
    within ``nucleation_height`` metres of the heated plate (y = 0) is attached to the
-   plate: it belongs to bubble 0, the nucleation region. A bubble that rises out of it
+   plate: it belongs to bubble 0, the nucleation region. Where the image's bottom
+   border cuts a silhouette (a plate just below the frame), this test takes the bottom
+   of the circle its outline lies on (:func:`border_bottom`): the border is no
+   bubble's bottom (the dating below keeps the silhouettes' own bottoms: a track whose
+   outlines fit a circle in some frames only would mix the two). A bubble that rises out of it
    slowly in frames is free from the knee of the hinge (resting, then rising) fitted to
    its bottom heights over the attached frames it continues and its first frames
    (:mod:`surfphase.masks.detach`): the attached frames after the knee become its own,
@@ -48,9 +52,9 @@ from scipy.optimize import linear_sum_assignment
 
 from surfphase.cameras import Camera, triangulate
 from surfphase.masks import detach
-from surfphase.masks.anchors import lowest_point
+from surfphase.masks.anchors import circle_fit, lowest_point
 from surfphase.masks.merges import lobe_frames, reconcile_merges
-from surfphase.masks.params import ASSOCIATE_DEFAULTS
+from surfphase.masks.params import ANCHOR_DEFAULTS, ASSOCIATE_DEFAULTS
 from surfphase.masks.tracking import Tracks, track_view
 
 __all__ = [
@@ -70,27 +74,79 @@ __all__ = [
 
 INSTANCE_COLUMNS = [
     "frame", "camera", "local", "area", "cx", "cy", "x0", "y0", "x1", "y1", "score",
-    "top_u", "top_v", "bot_u", "bot_v",
+    "top_u", "top_v", "bot_u", "bot_v", "low_u", "low_v",
 ]  # fmt: skip
 
 
-def instance_table(labels: np.ndarray, scores: Sequence[np.ndarray], camera: str) -> pd.DataFrame:
+def border_bottom(
+    ys: np.ndarray, xs: np.ndarray, shape: tuple[int, int], max_rms: float
+) -> tuple[float, float] | None:
+    """The bottom of a silhouette that the image's bottom border cuts.
+
+    The silhouette's pixels ``ys, xs`` (rows, columns) reach the last row of an image
+    of ``shape`` (H, W): its lowest row is the border, not the bubble's bottom (a
+    bubble on a plate just below the frame). Its outer outline pixels off the image's
+    border (the silhouette filled as if the border closed it: a ring open there holds
+    its core) are fitted with a circle (:func:`~surfphase.masks.anchors.circle_fit`); the
+    circle's lowest point ``(u, v)`` (pixels, v ≥ the last row; the circle widened by
+    half a pixel, the outline pixels' centres lying that far inside the silhouette's
+    edge, so that a whole disc's bottom is its lowest pixel's centre) is the bottom,
+    where the outline's rms distance to the circle is at most ``max_rms`` of its radius.
+    None where the silhouette does not reach the last row, or the fit fails that test.
+    """
+    h, w = shape
+    if ys.size == 0 or int(ys.max()) < h - 1:
+        return None
+    y0, x0 = int(ys.min()), int(xs.min())
+    m = np.zeros((int(ys.max()) - y0 + 3, int(xs.max()) - x0 + 3), bool)
+    m[ys - y0 + 1, xs - x0 + 1] = True
+    # A backlit bubble's bright core that the border opens is no hole of its ring:
+    # closed along the border row, the ring is filled, and only its outer edge is fitted.
+    m[-1] = m[-2]
+    m = ndi.binary_fill_holes(m)
+    m[-1] = False
+    edge = m & ~ndi.binary_erosion(m)
+    ey, ex = np.nonzero(edge)
+    ey, ex = ey + y0 - 1, ex + x0 - 1
+    keep = (ey > 0) & (ey < h - 1) & (ex > 0) & (ex < w - 1)
+    pts = np.c_[ex[keep], ey[keep]].astype(np.float64)
+    fit = circle_fit(pts)
+    if fit is None:
+        return None
+    u, v, r = fit
+    rms = float(np.sqrt(np.mean((np.linalg.norm(pts - (u, v), axis=1) - r) ** 2)))
+    if rms > max_rms * r:
+        return None
+    return u, max(v + r + 0.5, float(h - 1))
+
+
+def instance_table(
+    labels: np.ndarray,
+    scores: Sequence[np.ndarray],
+    camera: str,
+    cut_rms: float = ANCHOR_DEFAULTS["max_sphere_rms"],
+) -> pd.DataFrame:
     """Per-instance geometry of a label stack.
 
     Args:
         labels: (T, H, W) int, −1 background, 0..n_t−1 instance index per frame.
         scores: per frame, (n_t,) backend confidence of each instance.
         camera: camera name for the table.
+        cut_rms: :func:`border_bottom`'s ``max_rms`` (``masks: anchors:
+            max_sphere_rms``).
 
     Returns:
         One row per instance: ``frame, camera, local`` (index in its frame), ``area``
-        (pixels), centroid ``cx, cy``, inclusive box ``x0, y0, x1, y1``, ``score`` and
+        (pixels), centroid ``cx, cy``, inclusive box ``x0, y0, x1, y1``, ``score``,
         the silhouette's topmost and bottommost points (``top_u, top_v``: mean column
         of the top row; ``bot_u, bot_v``: sub-pixel, the vertex of the parabola through
         its bottom outline, :func:`~surfphase.masks.anchors.lowest_point`, within a
-        quarter of its height of the lowest row), all in pixels.
+        quarter of its height of the lowest row) and the bubble's bottom ``low_u,
+        low_v`` (``bot_u, bot_v``, or where the image's bottom border cuts the
+        silhouette the :func:`border_bottom` of its outline), all in pixels.
     """
     rows = []
+    shape = labels.shape[1:]
     for t in range(labels.shape[0]):
         lab = np.asarray(labels[t])
         n = int(lab.max()) + 1
@@ -105,6 +161,7 @@ def instance_table(labels: np.ndarray, scores: Sequence[np.ndarray], camera: str
             xs = xs + sl[1].start
             top, bot = ys.min(), ys.max()
             sc = scores[t][i] if len(scores[t]) > i else np.nan
+            low = lowest_point(ys, xs, max((bot - top) / 4.0, 1.0))
             rows.append(
                 (
                     t,
@@ -120,7 +177,8 @@ def instance_table(labels: np.ndarray, scores: Sequence[np.ndarray], camera: str
                     float(sc),
                     xs[ys == top].mean(),
                     float(top),
-                    *lowest_point(ys, xs, max((bot - top) / 4.0, 1.0)),
+                    *low,
+                    *(border_bottom(ys, xs, shape, cut_rms) or low),
                 )
             )
     return pd.DataFrame(rows, columns=INSTANCE_COLUMNS)
@@ -210,16 +268,23 @@ def _on_plate(inst: pd.DataFrame, plates: Mapping[str, np.ndarray]) -> set[tuple
 
 
 def bottom_heights(
-    inst: pd.DataFrame, pairs: pd.DataFrame, cam_a: str, cam_b: str, cams: tuple[Camera, Camera]
+    inst: pd.DataFrame,
+    pairs: pd.DataFrame,
+    cam_a: str,
+    cam_b: str,
+    cams: tuple[Camera, Camera],
+    cut: bool = True,
 ) -> np.ndarray:
-    """(P,) lab height y (m) of each pair's triangulated silhouette bottoms (the rows of
-    ``pairs``, a :func:`pair_views` table)."""
+    """(P,) lab height y (m) of each pair's triangulated bubble bottoms (``low_u,
+    low_v`` of :func:`instance_table`, or with ``cut`` False the silhouettes' own
+    ``bot_u, bot_v``; the rows of ``pairs``, a :func:`pair_views` table)."""
     if len(pairs) == 0:
         return np.zeros(0)
     ia = inst[inst.camera == cam_a].set_index(["frame", "local"])
     ib = inst[inst.camera == cam_b].set_index(["frame", "local"])
-    ua = ia.loc[list(zip(pairs.frame, pairs.local_a, strict=True)), ["bot_u", "bot_v"]]
-    ub = ib.loc[list(zip(pairs.frame, pairs.local_b, strict=True)), ["bot_u", "bot_v"]]
+    cols = ["low_u", "low_v"] if cut else ["bot_u", "bot_v"]
+    ua = ia.loc[list(zip(pairs.frame, pairs.local_a, strict=True)), cols]
+    ub = ib.loc[list(zip(pairs.frame, pairs.local_b, strict=True)), cols]
     return triangulate(list(cams), [ua.to_numpy(float), ub.to_numpy(float)])[:, 1]
 
 
@@ -322,7 +387,6 @@ def free_continuations(
         The instances of ``attached`` to free.
     """
     from surfphase.masks.anchors import pair_agreement, views_agree
-    from surfphase.masks.params import ANCHOR_DEFAULTS
 
     agree = {**ANCHOR_DEFAULTS, **(agree or {})}
     cam_a, cam_b = names
@@ -393,7 +457,9 @@ def associate(
         fps: the session's frame rate (frames per second), for time settings such as
             ``merge_lobe_s`` (without it they count one frame).
         anchor_params: ``masks: anchors:`` settings of the views' agreement on a bubble
-            (:func:`free_continuations`; default their defaults).
+            (:func:`free_continuations`) and of the circle of a silhouette the image's
+            bottom border cuts (``max_sphere_rms``, :func:`border_bottom`); default
+            their defaults.
 
     Returns:
         bubble_labels: ``{camera: (T, H, W) int32}``, −1 background, 0 nucleation
@@ -407,7 +473,10 @@ def associate(
     if not names:
         raise ValueError("no camera to associate")
     height = next(iter(labels.values())).shape[1]
-    inst = pd.concat([instance_table(labels[c], scores[c], c) for c in names], ignore_index=True)
+    cut_rms = float({**ANCHOR_DEFAULTS, **(anchor_params or {})}["max_sphere_rms"])
+    inst = pd.concat(
+        [instance_table(labels[c], scores[c], c, cut_rms) for c in names], ignore_index=True
+    )
     attached: set[tuple[str, int, int]] = set()
     pairs = pd.DataFrame(columns=["frame", "local_a", "local_b", "cost"])
     cam_pair, hts = None, None
@@ -426,7 +495,8 @@ def associate(
     tracks = _track_views(labels, inst, names, attached, p)
     if cam_pair is not None and attached:
         keys = detach.pair_keys(pairs, names[0], names[1])
-        heights = {k: float(h) for (ka, kb), h in zip(keys, hts, strict=True) for k in (ka, kb)}
+        seen = bottom_heights(inst, pairs, names[0], names[1], cam_pair, cut=False)
+        heights = {k: float(h) for (ka, kb), h in zip(keys, seen, strict=True) for k in (ka, kb)}
         partner = {ka: kb for ka, kb in keys} | {kb: ka for ka, kb in keys}
         two = {c: tracks[c] for c in names[:2]}
         freed, landed = detach.detachments(labels, two, heights, partner, attached, fps, p)

@@ -190,6 +190,9 @@ ANCHOR_DEFAULTS: dict = {
     # to 25 % inside) without one (fit: track_min_visible; anchors.csv's ``visible`` is
     # each centre's share inside).
     "min_visible_sphere": 0.05,
+    # (max_sphere_rms also bounds the circle of a silhouette that the image's bottom
+    # border cuts, whose lowest point is then the bubble's bottom for the nucleation
+    # test: masks: associate: nucleation_height.)
     "max_sphere_rms": 0.08,
     # Where the other view has the bubble's centre and area, the sphere lies on that
     # centre's ray with that size and only its depth is fitted; where neither has one,

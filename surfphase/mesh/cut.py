@@ -31,10 +31,12 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 import numpy as np
+from scipy import ndimage as ndi
 
 from surfphase.cameras import Camera
 from surfphase.masks.anchors import (
     _MIN_OUTLINE_POINTS,
+    NUCLEATION_ID,
     border_ids,
     circle_fit,
     inside_ellipse,
@@ -261,8 +263,47 @@ def fit_circle(points: np.ndarray) -> tuple[float, float, float, float] | None:
 CORE_INSET_PX = 1.0
 
 
+def nucleation_cut_shapes(lab: np.ndarray, rules: Mapping) -> list[Ellipse]:
+    """The whole silhouettes, as circles, of the nucleation region's pieces that the
+    image's bottom border cuts in one frame's (H, W) labels of a view.
+
+    The nucleation region (:data:`~surfphase.masks.anchors.NUCLEATION_ID`) holds every
+    attached bubble under one id, and has no track: each of its connected pieces that
+    reaches the last row (a bubble growing on a plate just below the frame; a piece
+    the side borders cut is the plate's edge as often as a bubble, and is left as it
+    is) is filled as if the border closed it (a backlit bubble's bright core, which the border opens,
+    is no hole of its ring) and gets the circle fitted to its visible outline
+    (:func:`fit_circle`), by the rules of a bubble's circle (:func:`_circle_holds`:
+    ``min_visible_tracked`` of it inside, the outline within ``max_shape_rms`` of its
+    radius; ``rules`` as config ``masks: anchors:``). Returns those circles, as
+    ellipses of equal semi-axes (pixels)."""
+    lab = np.asarray(lab)
+    lo, rms_max = float(rules["min_visible_tracked"]), float(rules["max_shape_rms"])
+    nuc = lab == NUCLEATION_ID
+    if lo > 1.0 or not nuc.any():
+        return []
+    comp, _ = ndi.label(nuc)
+    out: list[Ellipse] = []
+    for i in np.unique(comp[-1][nuc[-1]]):
+        piece = comp == i
+        filled = ndi.binary_fill_holes(np.pad(piece, 1, mode="edge"))[1:-1, 1:-1]
+        one = lab.copy()
+        one[nuc & ~piece] = -1
+        one[filled & (one == -1)] = NUCLEATION_ID
+        vis = _outline(one, NUCLEATION_ID)
+        if vis is None or len(vis[0]) < _MIN_OUTLINE_POINTS:
+            continue
+        c = fit_circle(vis[0])
+        if _circle_holds(c, vis[1], lo, rms_max):
+            out.append((c[0], c[1], c[2], c[2], 0.0))
+    return out
+
+
 def completed_view(
-    camera: Camera, lab: np.ndarray, shapes: Mapping[int, Ellipse]
+    camera: Camera,
+    lab: np.ndarray,
+    shapes: Mapping[int, Ellipse],
+    pieces: list[Ellipse] | tuple = (),
 ) -> tuple[Camera, np.ndarray]:
     """One view's labels grown beyond the frame, with ``shapes`` drawn there.
 
@@ -270,6 +311,8 @@ def completed_view(
         camera: the view's undistorted camera of the (H, W) ``lab`` grid.
         lab: (H, W) int labels, −1 background.
         shapes: ``{id: ellipse}`` of :func:`cut_shapes`.
+        pieces: ellipses of the nucleation region's pieces
+            (:func:`nucleation_cut_shapes`), drawn as its id.
 
     Returns:
         ``(camera, labels)``: the camera of the grown grid (the same camera, its image
@@ -281,21 +324,22 @@ def completed_view(
         that no hole filling closes. Unchanged when ``shapes`` is empty.
     """
     lab = np.asarray(lab)
-    if not shapes:
+    items = [(NUCLEATION_ID, ell) for ell in pieces] + sorted(shapes.items())
+    if not items:
         return camera, lab
     h, w = lab.shape
-    e = np.array([(u, v, max(a, b)) for u, v, a, b, _ in shapes.values()])
+    e = np.array([(u, v, max(a, b)) for _, (u, v, a, b, _) in items])
     reach = np.max([e[:, 2] - e[:, 0], e[:, 0] + e[:, 2] - (w - 1), e[:, 2] - e[:, 1],
                     e[:, 1] + e[:, 2] - (h - 1)])  # fmt: skip
     m = int(np.ceil(max(float(reach), 0.0))) + 2
     grown = np.full((h + 2 * m, w + 2 * m), -1, lab.dtype)
     vv, uu = np.mgrid[-m : h + m, -m : w + m]
     outside = (uu < 0) | (uu >= w) | (vv < 0) | (vv >= h)
-    for b, ell in sorted(shapes.items()):
+    for b, ell in items:
         grown[outside & inside_ellipse(uu, vv, ell)] = b
     inner = lab.copy()
     fu, fv = np.meshgrid(np.arange(w), np.arange(h))
-    for b, (u, v, a, bb, ang) in sorted(shapes.items()):
+    for b, (u, v, a, bb, ang) in items:
         if min(a, bb) > CORE_INSET_PX:
             inset = (u, v, a - CORE_INSET_PX, bb - CORE_INSET_PX, ang)
             inner[inside_ellipse(fu, fv, inset) & (inner == -1)] = b

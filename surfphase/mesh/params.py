@@ -84,7 +84,9 @@ DEFAULTS: dict = {
     # otherwise its hull, and its mesh, stop at the border.
     "complete_cut": True,
     # ... and one whose track shows no whole shape, the circle fitted to its visible
-    # outline, by the same rules (a prior: a bubble of a millimetre is near-spherical).
+    # outline, by the same rules (a prior: a bubble of a millimetre is near-spherical);
+    # so too each piece of the nucleation region the bottom border cuts (a bubble growing
+    # on a plate just below the frame), filled as if the border closed it.
     "complete_cut_circles": True,
     # ... and one less of which is inside than min_visible_tracked, the circle of the
     # radius its track's nearest frame gave it so, placed on its visible outline.

@@ -54,7 +54,7 @@ from surfphase.folders.masks import labels_path, read_anchors, read_masks
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text, part_dir, replace_dir
 from surfphase.masks.params import ANCHOR_DEFAULTS
 from surfphase.mesh.cleanup import mesh_stats
-from surfphase.mesh.cut import completed_view, cut_shapes
+from surfphase.mesh.cut import completed_view, cut_shapes, nucleation_cut_shapes
 from surfphase.mesh.measure import bubble_sizes, vertex_bubbles
 from surfphase.mesh.params import DEFAULTS  # every setting, with its default
 from surfphase.mesh.ply import speed_colors, write_mesh_ply
@@ -301,7 +301,8 @@ def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], l
     ``complete_cut``, each view's silhouettes the border cuts drawn whole beyond it, on a
     grown grid (:mod:`surfphase.mesh.cut`; with ``complete_cut_spheres`` those whose
     track shows no whole shape as the image of the mask stage's sphere,
-    :func:`sphere_shapes`, before any fitted circle);
+    :func:`sphere_shapes`, before any fitted circle; with ``complete_cut_circles`` the
+    nucleation region's pieces the bottom border cuts as their circles, :func:`nucleation_cut_shapes`);
     ``cache``: per view, its whole shapes."""
     labels = [np.asarray(m[t]) for m in s.masks]
     if s.cut_rules is None:
@@ -317,7 +318,8 @@ def frame_views(s: _Session, t: int, cache: list[dict]) -> tuple[list[Camera], l
             bool(s.p["complete_cut_tracked_circles"]), sph,
         )  # fmt: skip
         shapes.update({b: e for b, e in sph.items() if b not in shapes})
-        views.append(completed_view(cam, lab, shapes))
+        pieces = nucleation_cut_shapes(lab, s.cut_rules) if s.p["complete_cut_circles"] else []
+        views.append(completed_view(cam, lab, shapes, pieces))
     return [v[0] for v in views], [v[1] for v in views]
 
 
