@@ -408,8 +408,8 @@ def test_a_free_bubble_fused_in_the_other_view_does_not_land_on_the_plate():
     assert freed(on_plate) == set()
 
 
-@pytest.mark.parametrize("lift_mm", [0.0, 0.4])
-def test_a_bubble_the_bottom_border_cuts_has_the_bottom_of_its_circle(lift_mm):
+@pytest.mark.parametrize(("lift_mm", "core"), [(0.0, False), (0.4, False), (0.0, True)])
+def test_a_bubble_the_bottom_border_cuts_has_the_bottom_of_its_circle(lift_mm, core):
     """A 0.6 mm sphere whose bottom is ``lift_mm`` above the plate, seen by the two-view
     rig at 512 px (18 px radius), each view cut a fifth of the sphere's image radius
     below its centre's row: the plate lies below the frame, the image's bottom border
@@ -417,7 +417,10 @@ def test_a_bubble_the_bottom_border_cuts_has_the_bottom_of_its_circle(lift_mm):
     sphere's bottom, a bubble on the plate then called free. The bottoms of the
     circles of the cut outlines triangulate to the sphere's bottom (analytic) within
     0.04 mm, and to the whole silhouettes' bottoms within 0.03 mm (a pixel there is
-    0.033 mm): on the plate, the nucleation region; 0.4 mm above it, free."""
+    0.033 mm): on the plate, the nucleation region; 0.4 mm above it, free. With
+    ``core``, each cut silhouette is a ring whose bright core (half its radius) the
+    border opens: filled as if the border closed it, its outer outline gives the same
+    circle."""
     from test_masks_scene import draw_view
 
     from surfphase.cameras import triangulate
@@ -433,7 +436,13 @@ def test_a_bubble_the_bottom_border_cuts_has_the_bottom_of_its_circle(lift_mm):
         rp = cam.K[0, 0] * r / cam.world_to_camera(X[None])[0, 2]
         keep = int(v + 0.2 * rp)
         whole[c] = np.where(truth == 0, 0, -1)[None]
-        cut[c] = whole[c][:, :keep]
+        cut[c] = whole[c][:, :keep].copy()
+        if core:
+            ((u, _),) = cam.project(X[None], distort=False)
+            vv, uu = np.mgrid[0:keep, 0 : truth.shape[1]]
+            hole = (uu - u) ** 2 + (vv - v) ** 2 < (0.5 * rp) ** 2
+            assert hole[-1].any()  # open to the border
+            cut[c][0][hole] = -1
         ys, xs = np.nonzero(cut[c][0] == 0)
         assert ys.max() == keep - 1  # the border cuts it
         assert border_bottom(ys, xs, (keep, truth.shape[1]), 0.08)[1] > keep - 1 + 0.5 * rp

@@ -53,6 +53,7 @@ from scipy.optimize import linear_sum_assignment
 from surfphase.cameras import Camera, triangulate
 from surfphase.masks import detach
 from surfphase.masks.anchors import circle_fit, lowest_point
+from surfphase.masks.classical import fill_holes_to_border
 from surfphase.masks.merges import lobe_frames, reconcile_merges
 from surfphase.masks.params import ANCHOR_DEFAULTS, ASSOCIATE_DEFAULTS
 from surfphase.masks.tracking import Tracks, track_view
@@ -97,17 +98,14 @@ def border_bottom(
     h, w = shape
     if ys.size == 0 or int(ys.max()) < h - 1:
         return None
-    y0, x0 = int(ys.min()), int(xs.min())
-    m = np.zeros((int(ys.max()) - y0 + 3, int(xs.max()) - x0 + 3), bool)
-    m[ys - y0 + 1, xs - x0 + 1] = True
+    y0, x0, x1 = int(ys.min()), int(xs.min()), int(xs.max())
+    m = np.zeros((h - y0, x1 - x0 + 1), bool)
+    m[ys - y0, xs - x0] = True
     # A backlit bubble's bright core that the border opens is no hole of its ring:
-    # closed along the border row, the ring is filled, and only its outer edge is fitted.
-    m[-1] = m[-2]
-    m = ndi.binary_fill_holes(m)
-    m[-1] = False
-    edge = m & ~ndi.binary_erosion(m)
-    ey, ex = np.nonzero(edge)
-    ey, ex = ey + y0 - 1, ex + x0 - 1
+    # closed along the border, the ring is filled, and only its outer edge is fitted.
+    m = fill_holes_to_border(m, (y0 == 0, True, x0 == 0, x1 == w - 1))
+    ey, ex = np.nonzero(m & ~ndi.binary_erosion(m))
+    ey, ex = ey + y0, ex + x0
     keep = (ey > 0) & (ey < h - 1) & (ex > 0) & (ex < w - 1)
     pts = np.c_[ex[keep], ey[keep]].astype(np.float64)
     fit = circle_fit(pts)

@@ -45,6 +45,7 @@ from surfphase.masks.anchors import (
     shape_centre,
     visible_outline,
 )
+from surfphase.masks.classical import fill_holes_to_border
 
 #: An ellipse ``(u, v, a, b, angle)``: centre (pixels, column, row), semi-axes (pixels)
 #: and orientation (degrees, ``cv2.fitEllipse``'s convention).
@@ -286,7 +287,8 @@ def nucleation_cut_shapes(lab: np.ndarray, rules: Mapping) -> list[Ellipse]:
     out: list[Ellipse] = []
     for i in np.unique(comp[-1][nuc[-1]]):
         piece = comp == i
-        filled = ndi.binary_fill_holes(np.pad(piece, 1, mode="edge"))[1:-1, 1:-1]
+        sides = (bool(piece[0].any()), True, bool(piece[:, 0].any()), bool(piece[:, -1].any()))
+        filled = fill_holes_to_border(piece, sides)
         one = lab.copy()
         one[nuc & ~piece] = -1
         one[filled & (one == -1)] = NUCLEATION_ID
