@@ -25,7 +25,6 @@ from collections.abc import Mapping
 import cv2
 import numpy as np
 from scipy import ndimage as ndi
-from scipy.stats import siegelslopes
 from skimage.feature import peak_local_max
 from skimage.filters import apply_hysteresis_threshold
 from skimage.morphology import convex_hull_image
@@ -214,6 +213,8 @@ def polyline_edge(
 
     Returns ``(cleaned, on_edge)``: (W,) float64 rows and (W,) bool.
     """
+    from scipy.stats import siegelslopes  # here: scipy.stats takes 0.7 s to import
+
     y = np.asarray(edge, np.float64)
     w = y.size
     n = max(3, min(int(window), w))
