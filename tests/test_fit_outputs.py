@@ -141,18 +141,62 @@ def test_track_smoothing_against_analytic_tracks():
     assert np.abs(dydt - smooth["vy"]).max() < 1e-12
 
 
-def test_quadratic_t_is_numpys_polyfit_t_statistic():
-    from surfphase.fit.outputs import quadratic_t
+def _polyfit_t(t: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """numpy's |t| of a parabola's quadratic coefficient (its covariance scaled by
+    χ²/(n − 3)) and the lag-1 autocorrelation of its residuals."""
+    coef, cov = np.polyfit(t, y, 2, cov=True)
+    r = y - np.polyval(coef, t)
+    return abs(coef[0]) / np.sqrt(cov[0, 0]), float(np.dot(r[1:], r[:-1]) / np.dot(r, r))
+
+
+def test_quadratic_t_is_numpys_polyfit_t_statistic_over_the_residuals_correlation():
+    """numpy's t statistic, its variance inflated by (1 + ρ)/(1 − ρ) for the residuals'
+    lag-1 autocorrelation ρ, clipped to [0, CURVATURE_MAX_RHO]: white noise and a slow
+    drift (ρ clipped) in one call."""
+    from surfphase.fit.outputs import CURVATURE_MAX_RHO, quadratic_t
 
     rng = np.random.default_rng(1)
-    t = np.arange(11) / 3000.0
-    y = np.stack([0.1 * t + 40 * t**2, -0.2 * t], axis=1) + rng.normal(0, 3e-6, (11, 2))
+    t = np.arange(24) / 3000.0
+    y = np.stack([0.1 * t + 4 * t**2, -0.2 * t], axis=1) + rng.normal(0, 3e-6, (24, 2))
+    y[:, 1] += 2e-5 * np.sin(2 * np.pi * (t / t[-1] - 0.5))  # a slow wave: correlated residuals
     ref = []
-    for k in range(2):  # polyfit's covariance is scaled by χ²/(n − 3), as quadratic_t's
-        coef, cov = np.polyfit(t, y[:, k], 2, cov=True)
-        ref.append(abs(coef[0]) / np.sqrt(cov[0, 0]))
+    for k in range(2):
+        tk, rho = _polyfit_t(t, y[:, k])
+        rho = min(max(rho, 0.0), CURVATURE_MAX_RHO)
+        ref.append(tk / np.sqrt((1 + rho) / (1 - rho)))
+        assert quadratic_t(t, y[:, k : k + 1]) == pytest.approx(ref[-1], rel=1e-6)
     assert quadratic_t(t, y) == pytest.approx(max(ref), rel=1e-6)
+    assert _polyfit_t(t, y[:, 0])[1] < 0.2  # white: (nearly) as numpy's
+    assert _polyfit_t(t, y[:, 1])[1] > CURVATURE_MAX_RHO  # the clip is exercised
     assert quadratic_t(t[:4], y[:4]) == 0.0
+
+
+def test_quadratic_t_calls_a_slow_drift_curved_less_often_and_a_curve_as_often():
+    """Monte Carlo against the statistic's purpose, the end test's threshold 5
+    (``track_end_t``): 400 straight tracks of 24 frames whose centres err by AR(1) noise
+    (ρ = 0.9, a silhouette's shape-mode error spanning frames at a high frame rate):
+    white-noise standard errors call a tenth or more of them curved (white noise: 1 in
+    10,000), the correlated ones under half as many. 400 parabolas in white noise, t about 12: found as often
+    either way (over 98 %)."""
+    from surfphase.fit.outputs import quadratic_t
+
+    rng = np.random.default_rng(7)
+    t = np.arange(24) / 8000.0
+    plain, corrected = 0, 0
+    for _ in range(400):
+        e = np.zeros(24)
+        e[0] = rng.normal()
+        for i in range(1, 24):
+            e[i] = 0.9 * e[i - 1] + np.sqrt(1 - 0.81) * rng.normal()
+        y = 0.2 * t + 5e-6 * e
+        plain += _polyfit_t(t, y)[0] > 5
+        corrected += quadratic_t(t, y[:, None]) > 5
+    assert plain >= 40 and corrected < 0.5 * plain, (plain, corrected)
+    found = 0
+    for _ in range(400):
+        y = 0.2 * t + 9.0 * t**2 + 1e-6 * rng.normal(size=24)
+        found += quadratic_t(t, y[:, None]) > 5
+    assert found >= 392, found
 
 
 def test_track_ends_take_a_parabola_only_where_the_track_curves():

@@ -117,7 +117,8 @@ DEFAULTS: dict = {
     "track_order": 1,  # polynomial order of that fit
     # ... and at each end of a track whose centre curves significantly over its first /
     # last track_end_window_s seconds (the quadratic coefficient of a parabola more than
-    # track_end_t standard errors from 0), a moving parabola over that window there: a
+    # track_end_t standard errors from 0, the residuals' serial correlation allowed for:
+    # surfphase.fit.outputs.quadratic_t), a moving parabola over that window there: a
     # straight line over a track's last window lags an accelerating bubble (0: off);
     # not on a track shorter than that window (its ends are all of it).
     "track_end_window_s": 0.005,
