@@ -17,6 +17,7 @@ from surfphase.masks.associate import (
     symmetric_epipolar_distance,
 )
 from surfphase.masks.classical import segment_frame
+from surfphase.masks.merges import _join_neck_chains
 
 
 def _segment(folder, cams):
@@ -468,3 +469,85 @@ def test_a_bubble_the_bottom_border_cuts_has_the_bottom_of_its_circle(lift_mm, c
     low = ASSOCIATE_DEFAULTS["nucleation_height"]
     assert bool(h_cut < low) == (lift_mm == 0.0)
     assert h_border > low
+
+
+def _neck_tracks(labels: dict[str, np.ndarray], neck: bool) -> dict[str, Tracks]:
+    """Hand-made tracks of :func:`_approaching_pair`'s views (A instance 0, B 1, one
+    blob from frame 11), as a tracker leaves them when the segmenter cuts the neck
+    between fusing lobes off A at frame 9 (``neck``): the piece (track 2) joins B at
+    frame 10 (track 3), which joins A at 11 (track 4). Without ``neck``: A and B go
+    on as tracks 0 and 1 up to frame 10 and merge into track 2 at 11."""
+    out = {}
+    for view, lab in labels.items():
+        tr = Tracks(n=5 if neck else 3)
+        for t in range(lab.shape[0]):
+            locs = sorted(int(q) for q in np.unique(lab[t][lab[t] >= 0]))
+            for loc in locs:
+                if t >= 11:
+                    k = 4 if neck else 2
+                elif neck and t == 10 and loc == 1:
+                    k = 3
+                else:
+                    k = loc
+                tr.track_of[(t, loc)] = k
+        if neck:
+            tr.events = [(9, "split", [0], [2]), (10, "merge", [1, 2], [3]),
+                         (11, "merge", [0, 3], [4])]  # fmt: skip
+            tr.continues = {3: 1, 4: 0}
+        else:
+            tr.events = [(11, "merge", [0, 1], [2])]
+            tr.continues = {2: 0}
+        out[view] = tr
+    return out
+
+
+def test_a_neck_cut_off_between_fusing_lobes_is_one_merge_dated_as_without_it():
+    """The segmenter cuts the neck between two fusing lobes off lobe A (frame 9); the
+    piece joins lobe B (frame 10), which joins A (frame 11). That is one merge of A and
+    B, dated as the same lobes without the piece are (frame 8: one frame before the
+    lobes leave their steady approach, as in the test above), not two merges dated from
+    the piece's first frame (9 and 10, or later)."""
+    plain = _approaching_pair()
+    labels = {c: lab.copy() for c, lab in plain.items()}
+    for lab in labels.values():
+        for t in (9, 10):
+            ys, xs = np.nonzero(lab[t] >= 0)
+            mid, col = int(round(ys.mean())), int(round(xs.mean()))
+            band = np.zeros(lab.shape[1:], bool)
+            band[mid - 1 : mid + 2, col - 1 : col + 2] = True  # the neck, 3 × 3 px
+            lab[t][band & (lab[t] >= 0)] = 2 if t == 9 else 1
+    n = labels["cam0"].shape[0]
+    params = {**ASSOCIATE_DEFAULTS, "merge_lobe_s": 0.01}
+
+    def merge_events(tracks, labs):
+        rows = [
+            (t, loc, loc, 0.0)
+            for t in range(n)
+            for loc in np.unique(labs["cam0"][t][labs["cam0"][t] >= 0])
+        ]
+        pairs = pd.DataFrame(rows, columns=["frame", "local_a", "local_b", "cost"])
+        out = reconcile_merges(tracks, labs, pairs, "cam0", "cam1", params, fps=1000)
+        return {c: [e for e in out[c].events if e[1] == "merge"] for c in out}, out
+
+    reference, _ = merge_events(_neck_tracks(plain, neck=False), plain)
+    assert reference["cam0"] == reference["cam1"] == [(8, "merge", [0, 1], [2])]
+    got, out = merge_events(_neck_tracks(labels, neck=True), labels)
+    for c in ("cam0", "cam1"):
+        assert got[c] == [(8, "merge", [0, 1, 2, 3], [4])], got[c]
+        # From the merge on, every instance is the merged bubble's, the piece's too.
+        assert {k for (t, _), k in out[c].track_of.items() if t >= 8} == {4}
+        assert {k for (t, _), k in out[c].track_of.items() if t < 8} == {0, 1}
+
+
+def test_two_merges_in_a_row_without_a_neck_piece_stay_two():
+    """Three bubbles: A and B merge (frame 4), then C joins the merged one (frame 6),
+    with no piece split off: :func:`_join_neck_chains` leaves them two merges."""
+    tr = Tracks(n=5)
+    tr.events = [(4, "merge", [0, 1], [3]), (6, "merge", [3, 2], [4])]
+    groups = {3: (4, {0, 1}), 4: (6, {3, 2})}
+    assert _join_neck_chains(tr, groups, lobe=10) == groups
+    # With B born as a piece split off C two frames earlier, they are one.
+    tr.events.insert(0, (2, "split", [2], [1]))
+    assert _join_neck_chains(tr, groups, lobe=10) == {4: (4, {0, 1, 2, 3})}
+    # ... but not when the piece is older than the look-back.
+    assert _join_neck_chains(tr, groups, lobe=3) == groups

@@ -39,12 +39,16 @@ def _track_frames(tr: Tracks) -> dict[int, set[int]]:
     return out
 
 
-def _merge_groups(tr: Tracks, frames: Mapping[int, set[int]]) -> dict[int, tuple[int, set[int]]]:
+def _merge_groups(
+    tr: Tracks, frames: Mapping[int, set[int]], lobe: int = 0
+) -> dict[int, tuple[int, set[int]]]:
     """Merges of one view by merged track: ``{child: (frame, parent tracks)}``.
 
     A blob that swallowed several tracks in one frame is recorded by
     :func:`track_view` as a chain of merges through intermediate tracks left with
-    no frame; they are one merge here, of the parents that have frames.
+    no frame; they are one merge here, of the parents that have frames. So is a chain
+    through the neck of two fusing lobes (:func:`_join_neck_chains`, within ``lobe``
+    frames).
     """
     groups: dict[int, tuple[int, set[int]]] = {}
     for f, kind, par, kids in tr.events:
@@ -54,11 +58,53 @@ def _merge_groups(tr: Tracks, frames: Mapping[int, set[int]]) -> dict[int, tuple
             if m in frames:
                 f0, ps = groups.get(m, (f, set()))
                 groups[m] = (min(f0, f), ps | set(par))
-    return {
+    groups = {
         m: (f, {q for q in ps if q in frames and q != m})
         for m, (f, ps) in groups.items()
         if any(q in frames and q != m for q in ps)
     }
+    return _join_neck_chains(tr, groups, lobe)
+
+
+def _join_neck_chains(
+    tr: Tracks, groups: dict[int, tuple[int, set[int]]], lobe: int
+) -> dict[int, tuple[int, set[int]]]:
+    """Join the merges of ``groups`` (``{child: (frame, parents)}`` of one view) that
+    are one merge of two lobes through their neck.
+
+    Where two lobes fuse, the segmenter may cut the neck between them off one lobe
+    (a *split*), the neck then joins the other lobe (a merge into an intermediate
+    track) and that joins the first lobe (a second merge). Those are one merge of the
+    lobes, first seen at the first of the two: merge ``m2`` with a parent ``m1`` that
+    is itself merged at most ``lobe`` frames before, from a parent split off another
+    of ``m2``'s parents within ``lobe`` frames of ``m2``, becomes one merge of all
+    their parents (the intermediate track among them, so that its instances join the
+    merged track too). Two merges in a row without such a neck piece stay two.
+    """
+    split_from = {
+        k: (f, set(par)) for f, kind, par, kids in tr.events if kind == "split" for k in kids
+    }
+    out = dict(groups)
+    joined = True
+    while joined:
+        joined = False
+        for m2, (f2, p2) in sorted(out.items()):
+            for m1 in sorted(p2 & set(out)):
+                f1, p1 = out[m1]
+                neck = any(
+                    s in split_from
+                    and split_from[s][0] >= f2 - lobe
+                    and split_from[s][1] & (p2 - {m1})
+                    for s in p1
+                )
+                if neck and 0 <= f2 - f1 <= lobe:
+                    out[m2] = (min(f1, f2), (p1 | p2 | {m1}) - {m2})
+                    del out[m1]
+                    joined = True
+                    break
+            if joined:
+                break
+    return out
 
 
 def _connected(lab: np.ndarray, locals_: Sequence[int]) -> bool:
@@ -105,6 +151,9 @@ def reconcile_merges(
     vanished track's prediction fell beside the blob). A merge is an event of the
     3D bubbles, so, taking the merges of both views in order of frame:
 
+    * a chain of merges through the neck of two fusing lobes — a piece cut off one
+      lobe joins the other, which then joins the first, within ``merge_lobe_s`` — is
+      one merge of the lobes (:func:`_join_neck_chains`);
     * the same merge in the other view (a merge there whose merged track is paired
       with this one's, or whose parents are paired with two of this one's, within
       ``coast_frames``) is combined with it, at the first frame from which the
@@ -153,7 +202,7 @@ def reconcile_merges(
     done: set[tuple[str, int]] = set()
     for _ in range(sum(len(t.events) for t in tr.values()) + 1):
         frames = {c: _track_frames(tr[c]) for c in tr}
-        groups = {c: _merge_groups(tr[c], frames[c]) for c in tr}
+        groups = {c: _merge_groups(tr[c], frames[c], lobe) for c in tr}
         todo = [(f, c, m, ps) for c in tr for m, (f, ps) in groups[c].items() if (c, m) not in done]
         if not todo:
             break
