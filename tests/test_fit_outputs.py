@@ -357,6 +357,29 @@ def test_track_segments_end_at_a_merge():
     assert seg[4] not in (seg[0], seg[1])  # the merged bubble starts a new track
 
 
+def test_low_centres_whose_views_disagree_on_size_lead_their_track():
+    """Low rows whose two views agree on the centre's position but not on its size (a
+    silhouette grown by the plate's image in one view) lead the track as damaged ones
+    do; a size disagreement within the track's own, or within 5 %, does not."""
+    from surfphase.fit.outputs import lead_rows
+
+    fps, n = 6000.0, 16
+    t = np.arange(n) / fps
+    low = np.zeros(n, bool)
+    low[:3] = True
+    reproj = np.full(n, 0.5)  # positions agree as well in the low rows as after them
+    seg = np.zeros(n, np.int64)
+    ratio = np.r_[1.23, 1.23, 1.01, np.full(n - 3, 1.02)]
+    assert not lead_rows(low, reproj, t, seg, 0.002).any()  # by position alone: none
+    lead = lead_rows(low, reproj, t, seg, 0.002, ratio)
+    assert lead.tolist() == [True] * 2 + [False] * (n - 2)
+    # 4 % off where the next rows are 2 % off: more than twice as much, but under 5 %.
+    assert not lead_rows(low, reproj, t, seg, 0.002, np.r_[1.04, 1.04, np.full(n - 2, 1.02)]).any()
+    # As far off as the track's next rows are: not damaged.
+    same = np.r_[1.2, 1.2, np.full(n - 2, 1.12)]
+    assert not lead_rows(low, reproj, t, seg, 0.002, same).any()
+
+
 def test_a_track_led_by_damaged_low_centres_starts_on_its_parabola():
     """Rows just off the plate whose views agree worse than the track's next ones take
     the parabola of the clean rows (analytic truth); a low row that agrees as well is
