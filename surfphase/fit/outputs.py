@@ -501,11 +501,10 @@ def _track_velocities(
             bub.loc[rows, vel] = np.gradient(bub[xyz].to_numpy(np.float64)[rows], t, axis=0)
     if track_window_s > 0 and len(bub):
         reach = _reach(rules, track_window_s)
-        ratio = bub["size_ratio"] if "size_ratio" in bub.columns else None
         lead = lead_rows(
             bub["low"].to_numpy(bool), bub["reproj_px"].to_numpy(np.float64),
             bub["time_s"].to_numpy(np.float64), seg, reach,
-            None if ratio is None else ratio.to_numpy(np.float64),
+            bub["size_ratio"].to_numpy(np.float64),
         )  # fmt: skip
         clean = bub[~lead].copy()
         smooth_tracks(clean, seg[~lead], track_window_s, track_order, *rules)
