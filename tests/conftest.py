@@ -1,9 +1,14 @@
-"""Shared test set-up: two CPU threads, as on the development machine and in CI.
+"""Shared test set-up: one CPU thread per worker.
 
 `make test` runs the suite on two pytest-xdist workers (``-n 2 --dist loadfile``: a
-test file's tests stay on one worker, so module fixtures are built once). Each worker's
+test file's tests stay on one worker, so module fixtures are built once), which fill
+the two cores of the development machine and of CI. Each worker computes on one thread
+(``OMP_NUM_THREADS=1``; the processes it starts inherit it, and Snakemake jobs get the
+threads their rule asks for): two threads per worker, four on two cores, made the
+whole suite slower (8 min 26 s and 8 min 28 s against 7 min 45 s, session 46). The tests that
+are about threads set their own count (the determinism benchmark's ``threads: 2``).
 OpenMP threads sleep when idle (``OMP_WAIT_POLICY=PASSIVE``, as ``import surfphase``
-sets for the stages), so the two workers do not spin against each other.
+sets for the stages).
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-os.environ.setdefault("OMP_NUM_THREADS", "2")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 

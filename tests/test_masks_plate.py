@@ -10,16 +10,25 @@ import numpy as np
 import pytest
 
 from surfphase.masks import classical
-from surfphase.synth.campaign import write_campaign
+from surfphase.synth.campaign import (
+    _write_session,
+    campaign_settings,
+    session_scene,
+    session_spec,
+)
 from surfphase.video import open_video
 
 
 @pytest.fixture(scope="module")
 def plate_session(tmp_path_factory):
-    root = tmp_path_factory.mktemp("bench3")
+    """Bench seed 0's session03 (the campaign writer's own session writer, without the
+    rest of the campaign), its camera 0 in [0, 1]."""
+    root = tmp_path_factory.mktemp("bench3") / "session03"
     # 24 frames: with 3 the reference happens to keep the plate findable.
-    write_campaign(root, preset="bench", seed=0, sessions=3, frames=24)
-    src = open_video(root / "session03" / "cam0.cih")
+    cfg = campaign_settings("bench", sessions=3, frames=24)
+    spec = session_spec(cfg, 2)
+    _write_session(root, session_scene(0, 2, cfg, spec), cfg, 0, 2, spec)
+    src = open_video(root / "cam0.cih")
     full = float(2**src.bit_depth - 1)
     return np.stack([f.astype(np.float32) / full for f in src.read(np.arange(src.count))])
 
