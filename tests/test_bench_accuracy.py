@@ -188,6 +188,36 @@ def test_reported_volumes_scored_against_the_matched_true_bubbles():
     assert math.isnan(none["error_pct"]) and none["sized_share"] == 0
 
 
+def test_paired_velocities_score_both_tables_on_the_bubble_frames_both_report():
+    cols = ["frame", "bubble", "x", "y", "z", "vx", "vy", "vz"]
+    truth = pd.DataFrame(
+        [  # frame, bubble, x, y, z, vx, vy, vz, r_eq: one bubble rising, 0.2 then 0.4 m/s
+            [0, 1, 0.0, 2 * MM, 0, 0, 0.2, 0, 1 * MM],
+            [1, 1, 0.0, 2.2 * MM, 0, 0, 0.4, 0, 1 * MM],
+            [2, 1, 0.0, 2.6 * MM, 0, 0, 0.4, 0, 1 * MM],
+        ],
+        columns=[*cols, "r_eq"],
+    )
+    pred = pd.DataFrame(  # frames 0 and 1, errors 0.1 and 0.02 m/s
+        [[0, 3, 0.0, 2 * MM, 0, 0, 0.3, 0], [1, 3, 0.0, 2.2 * MM, 0, 0.02, 0.4, 0]], columns=cols
+    )
+    other = pd.DataFrame(  # frames 1 and 2 (errors 0.06 and 0.01), frame 1 out of the gate
+        [
+            [1, 5, 0.0, 2.2 * MM, 0, 0, 0.34, 0],
+            [2, 5, 0.0, 2.6 * MM, 0, 0, 0.41, 0],
+            [0, 5, 0.0, 2.7 * MM, 0, 0, 0.2, 0],
+        ],
+        columns=cols,
+    )
+    p = am.paired_velocity_scores(pred, other, truth)
+    assert p["matched"] == 1  # frame 1 only
+    assert p["method"] == pytest.approx(0.02 / 0.4) and p["baseline"] == pytest.approx(0.06 / 0.4)
+    # Each table alone: its own frames and speeds.
+    assert am.velocity_scores(pred, truth)["relative_error"] == pytest.approx(0.12 / 2 / 0.3)
+    none = am.paired_velocity_scores(pred[pred.frame == 0], other, truth)
+    assert none["matched"] == 0 and math.isnan(none["method"])
+
+
 def test_table_rows_mean_and_worst():
     def row(name, v, p):
         return {
@@ -233,6 +263,8 @@ def test_ci_sized_benchmark_table(tmp_path, capsys):
     assert r["detection"]["precision"] >= 0.98 and r["detection"]["reported"] > 0
     assert r["method"]["relative_error"] <= r["baseline_smoothed"]["relative_error"]
     assert r["method"]["matched"] >= 0.9 * r["baseline_smoothed"]["matched"]
+    assert 0 < r["paired"]["matched"] <= r["baseline_smoothed"]["matched"]
+    assert np.isfinite(r["paired"]["method"]) and np.isfinite(r["paired"]["baseline"])
     assert r["frames_without_mesh"] == 0 and np.isfinite(r["chamfer_mm"])
     assert np.isfinite(r["psnr"]) and 0 < r["ssim"] <= 1
     grid = res["smoothing"]["grid"]

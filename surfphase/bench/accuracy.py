@@ -28,7 +28,12 @@ gated at :data:`GATE_R_EQ` (0.5 r_eq) before the assignment
 ``bubbles.csv``: ids ≥ 1 count as real when matched, the nucleation region (id 0) when a
 true bubble is attached to the plate in that frame (its surface within
 :data:`ATTACHED_R_EQ` r_eq of it). Recall is over the free (not attached) true
-bubble-frames seen in both input views (gt masks); "recall, centre in both frames"
+bubble-frames seen in both input views (gt masks). "v rel" is over each table's own
+matched bubble-frames, so a bubble-frame that only one of them reports counts for that
+one alone; the "both report" columns score the method and the smoothed baseline on the
+true bubble-frames both match, over one mean true speed
+(:func:`~surfphase.bench.accuracy_metrics.paired_velocity_scores`), and give how many
+there are. "recall, centre in both frames"
 over those whose true centroid also projects inside both images (a bubble leaving the
 frame is seen while its centre is already outside). "volume err %" is the meshes'
 (the components each true bubble owns) over all the true bubble-frames seen in both
@@ -65,6 +70,7 @@ from surfphase.bench.accuracy_metrics import (
     VEL,
     XYZ,
     nanmean,
+    paired_velocity_scores,
     session_metrics,
     velocity_scores,
 )
@@ -164,6 +170,9 @@ COLUMNS = [
     ("v rel: method", ("method", "relative_error"), "low", "{:.3f}"),
     ("v rel: baseline raw", ("baseline_raw", "relative_error"), "low", "{:.3f}"),
     ("v rel: baseline smoothed", ("baseline_smoothed", "relative_error"), "low", "{:.3f}"),
+    ("v rel, both report: method", ("paired", "method"), "low", "{:.3f}"),
+    ("v rel, both report: smoothed", ("paired", "baseline"), "low", "{:.3f}"),
+    ("bubble-frames both report", ("paired", "matched"), "high", "{:.0f}"),
     ("v rel: method track-smoothed", ("method_smoothed", "relative_error"), "low", "{:.3f}"),
     ("d/dt track − v m/s: method", ("consistency", "method"), "low", "{:.4f}"),
     ("d/dt track − v: smoothed", ("consistency", "method_smoothed"), "low", "{:.4f}"),
@@ -516,7 +525,8 @@ def _native_baselines(names, sheet: pd.DataFrame, res: Path, work: Path, cfg: di
 
 def _session_row(s, sheet, res, raw, fits, truths, smoothing, method_smoothing, samples) -> dict:
     """One session's row: :func:`session_metrics`, the smoothed baseline and method
-    velocities, the tracks' consistency."""
+    velocities, the two scored on the bubble-frames both report, the tracks'
+    consistency."""
     r = session_metrics(
         s,
         Path(sheet.loc[s, "gt"]),
@@ -528,7 +538,11 @@ def _session_row(s, sheet, res, raw, fits, truths, smoothing, method_smoothing, 
     )
     if s in raw:
         tab, fps = raw[s]
-        r["baseline_smoothed"] = velocity_scores(smoothed_table(tab, fps, *smoothing), truths[s])
+        smoothed = smoothed_table(tab, fps, *smoothing)
+        r["baseline_smoothed"] = velocity_scores(smoothed, truths[s])
+        if (res / s / "fit" / "bubbles.csv").is_file():
+            pred = pd.read_csv(res / s / "fit" / "bubbles.csv")
+            r["paired"] = paired_velocity_scores(pred, smoothed, truths[s])
     if s in fits:
         smooth = method_track_table(fits[s], *method_smoothing)
         r["method_smoothed"] = velocity_scores(smooth, truths[s])

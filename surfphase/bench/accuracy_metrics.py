@@ -280,6 +280,30 @@ def velocity_scores(pred: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = 
     }
 
 
+def paired_velocity_scores(
+    pred: pd.DataFrame, other: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = GATE_R_EQ
+) -> dict:
+    """Both tables' velocities on the true bubble-frames that each matches (ids ≥ 1,
+    :func:`surfphase.eval.velocity.match_bubbles_relative`, velocities known in both):
+    ``{"matched": n, "method": rel, "baseline": rel}``, each relative error the mean
+    |error| (m/s) over those n bubble-frames divided by their mean true speed — one
+    denominator for both, so the two differ only by their errors on the same bubbles."""
+    keys = ["frame", "gt_bubble"]
+    both = []
+    for table in (pred, other):
+        m = velocity.match_bubbles_relative(table[table["bubble"] >= 1], truth, gate_r_eq)
+        both.append(m[np.isfinite(m["abs_error_mps"].to_numpy(np.float64))])
+    j = both[0].merge(both[1][[*keys, "abs_error_mps"]], on=keys, suffixes=("", "_other"))
+    if j.empty:
+        return {"matched": 0, "method": math.nan, "baseline": math.nan}
+    speed = np.linalg.norm(j[["gt_vx", "gt_vy", "gt_vz"]].to_numpy(np.float64), axis=1).mean()
+    return {
+        "matched": int(len(j)),
+        "method": float(j["abs_error_mps"].mean() / speed),
+        "baseline": float(j["abs_error_mps_other"].mean() / speed),
+    }
+
+
 def reported_volume_scores(
     sized: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = GATE_R_EQ
 ) -> dict:
