@@ -5,8 +5,8 @@ test file's tests stay on one worker, so module fixtures are built once), which 
 the two cores of the development machine and of CI. Each worker computes on one thread
 (``OMP_NUM_THREADS=1``; the processes it starts inherit it, and Snakemake jobs get the
 threads their rule asks for): two threads per worker, four on two cores, made the
-whole suite slower (8 min 26 s and 8 min 28 s against 7 min 45 s, session 46). The tests that
-are about threads set their own count (the determinism benchmark's ``threads: 2``).
+whole suite slower (CHANGELOG.md, session 46). The tests that are about threads set
+their own count (the determinism benchmark's ``threads: 2``).
 OpenMP threads sleep when idle (``OMP_WAIT_POLICY=PASSIVE``, as ``import surfphase``
 sets for the stages).
 """

@@ -40,7 +40,7 @@ def _track_frames(tr: Tracks) -> dict[int, set[int]]:
 
 
 def _merge_groups(
-    tr: Tracks, frames: Mapping[int, set[int]], lobe: int = 0
+    tr: Tracks, frames: Mapping[int, set[int]], lobe: int
 ) -> dict[int, tuple[int, set[int]]]:
     """Merges of one view by merged track: ``{child: (frame, parent tracks)}``.
 
