@@ -5,6 +5,11 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 CORES ?= 2
+# Python keeps each module's compiled bytecode (__pycache__, git-ignored). An environment
+# that exports PYTHONDONTWRITEBYTECODE (some sandboxes and CI images do) otherwise makes
+# every one of a run's Python processes (each workflow job, each pytest worker, which
+# also rewrites every test module's asserts) compile its sources again.
+unexport PYTHONDONTWRITEBYTECODE
 
 .PHONY: install test lint demo demo-data clean-demo
 
