@@ -52,7 +52,7 @@ import torch
 from surfphase.cameras import Camera
 from surfphase.fit import binding
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text
-from surfphase.tracks import savgol_window
+from surfphase.tracks import moving_polynomial, savgol_window
 
 PER_SURFEL = ("means", "quats", "log_scales", "colors", "opacity")
 
@@ -642,6 +642,7 @@ def smooth_tracks(
     blend_window_s: float = 0.0,
     blend_order: int = 2,
     outlier_k: float = 0.0,
+    reproj_px: float = 0.0,
 ) -> None:
     """Replace each track's centroids and velocities by a moving polynomial fit, in place.
 
@@ -682,6 +683,16 @@ def smooth_tracks(
     smoothed value and the track smoothed again, so one bad frame does not bend the
     velocities of its neighbours. A moving polynomial is a least-squares fit, which one
     gross error pulls over its whole window.
+
+    With ``reproj_px`` > 0 and a ``reproj_px`` column in ``table`` (the anchors': how far
+    apart, in pixels, a centre's two views put it), every moving polynomial above is a
+    weighted least-squares fit, a centre's weight ``1 / (1 + (e / reproj_px)²)`` for its
+    disagreement ``e``: a centre whose views disagree by ``reproj_px`` counts as twice
+    as noisy as one whose views agree. Where a view's silhouette is damaged (by the
+    plate beside it, by a neighbour), its centroid is off and the two views no longer
+    meet: over the benchmark's triangulated centres the error grows with the
+    disagreement, from 0.011 r_eq (median) below 0.1 px to 0.03 r_eq at 0.3–0.5 px and
+    0.056 r_eq above (CHANGELOG.md, session 47).
     """
     if order < 1:
         raise ValueError(f"fit: track_order must be >= 1, got {order}")
@@ -694,7 +705,10 @@ def smooth_tracks(
             continue
         t = table["time_s"].to_numpy()[rows]
         p = table[xyz].to_numpy(np.float64)[rows]
-        smooth = _smooth_track(t, p, window_s, order, ends, blend)
+        w = None
+        if reproj_px > 0 and "reproj_px" in table.columns:
+            w = centre_weights(table["reproj_px"].to_numpy(np.float64)[rows], reproj_px)
+        smooth = _smooth_track(t, p, window_s, order, ends, blend, w)
         if smooth is None:
             continue
         if outlier_k > 0 and len(rows) >= OUTLIER_MIN_ROWS:
@@ -702,9 +716,17 @@ def smooth_tracks(
             out = r > outlier_k * float(np.median(r))
             if out.any():
                 p[out] = smooth[out]
-                smooth = _smooth_track(t, p, window_s, order, ends, blend)
+                smooth = _smooth_track(t, p, window_s, order, ends, blend, w)
         table.loc[table.index[rows], xyz] = smooth
         table.loc[table.index[rows], vel] = np.gradient(smooth, t, axis=0)
+
+
+def centre_weights(reproj: np.ndarray, reproj_px: float) -> np.ndarray:
+    """(n,) weights of a track's centres in its smoothing from their (n,) disagreements
+    ``reproj`` (pixels; NaN, a centre placed rather than measured: 0):
+    ``1 / (1 + (reproj / reproj_px)²)`` (:func:`smooth_tracks`)."""
+    e = np.nan_to_num(np.asarray(reproj, dtype=np.float64), nan=0.0)
+    return 1.0 / (1.0 + (e / float(reproj_px)) ** 2)
 
 
 def _smooth_track(
@@ -714,26 +736,26 @@ def _smooth_track(
     order: int,
     ends: tuple[float, float],
     blend: tuple[float, int],
+    weights: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """One track's smoothed (n, 3) centres (m) from its (n,) times (s) and (n, 3)
     centres, as :func:`smooth_tracks` describes (``ends``: ``(end_window_s, end_t)``,
-    ``blend``: ``(blend_window_s, blend_order)``); ``None`` when the window holds no
-    more than ``order`` frames."""
-    from scipy.signal import savgol_filter
-
+    ``blend``: ``(blend_window_s, blend_order)``, ``weights``: (n,) the centres'
+    weights, None: equal); ``None`` when the window holds no more than ``order``
+    frames."""
     (end_window_s, end_t), (blend_window_s, blend_order) = ends, blend
     dt = float(np.median(np.diff(t)))
     win = savgol_window(window_s / dt, order, len(t))
     if win <= order:
         return None
-    smooth = savgol_filter(p, window_length=win, polyorder=order, axis=0, mode="interp")
+    smooth = moving_polynomial(p, win, order, weights)
     # A track shorter than the end window has no end apart from its middle: the test
     # would weigh the curvature of all of it, which its centres' shape-mode biases
     # give as much as an acceleration does.
     if end_window_s > 0 and order < 2 and len(t) * dt >= end_window_s * (1.0 - 1e-9):
         w2 = savgol_window(end_window_s / dt, 2, len(t))
         if w2 >= 5:
-            para = savgol_filter(p, window_length=w2, polyorder=2, axis=0, mode="interp")
+            para = moving_polynomial(p, w2, 2, weights)
             n, h = len(t), win // 2
             for rs, fit in ((slice(0, h), slice(0, w2)), (slice(n - h, n), slice(n - w2, n))):
                 if quadratic_t(t[fit], p[fit]) > end_t:
@@ -745,23 +767,22 @@ def _smooth_track(
     if blend_window_s > 0 and (not short or end_t <= 0 or quadratic_t(t, p) > end_t):
         w3 = savgol_window(blend_window_s / dt, int(blend_order), len(t))
         if w3 >= int(blend_order) + 2:  # fewer frames: the polynomial is the data
-            long = savgol_filter(
-                p, window_length=w3, polyorder=int(blend_order), axis=0, mode="interp"
-            )
+            long = moving_polynomial(p, w3, int(blend_order), weights)
             smooth = 0.5 * (smooth + long)
     return smooth
 
 
-def track_rules(p: Mapping) -> tuple[float, float, float, int, float]:
+def track_rules(p: Mapping) -> tuple[float, float, float, int, float, float]:
     """:func:`smooth_tracks`' arguments after the window and order, from the fit's
     settings: ``(track_end_window_s, track_end_t, track_blend_window_s,
-    track_blend_order, track_outlier_k)``."""
+    track_blend_order, track_outlier_k, track_reproj_px)``."""
     return (
         float(p["track_end_window_s"]),
         float(p["track_end_t"]),
         float(p["track_blend_window_s"]),
         int(p["track_blend_order"]),
         float(p["track_outlier_k"]),
+        float(p["track_reproj_px"]),
     )
 
 

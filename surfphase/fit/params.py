@@ -134,6 +134,11 @@ DEFAULTS: dict = {
     # than this many times the track's median distance is replaced by its smoothed value
     # and the track smoothed again: one damaged frame does not bend its neighbours (0: off).
     "track_outlier_k": 6.0,
+    # ... and, > 0 (pixels), every moving polynomial of that smoothing weights each centre
+    # by how well its two views agree (the anchors' reproj_px, e): 1 / (1 + (e / this)²).
+    # A view's silhouette damaged by the plate or a neighbour puts its centroid off, and
+    # the views then disagree; 0: every centre weighs the same.
+    "track_reproj_px": 0.2,
     # Two views leave a bubble's extent along their bisector (the mean viewing direction)
     # unseen: surfels may sit anywhere in the visual hull's long corners. With a number k,
     # after every step a surfel farther than k·r along that axis from its bubble's centre
