@@ -469,3 +469,5 @@ def test_centres_whose_views_disagree_weigh_less_in_the_track():
     weighed = np.abs(smoothed(0.1) - 0.017).mean()
     assert weighed < 0.3 * plain, (weighed, plain)
     np.testing.assert_array_equal(smoothed(0.1, column=False), smoothed(0.0))
+    with pytest.raises(ValueError, match="track_reproj_px"):
+        smoothed(-0.1)

@@ -696,6 +696,8 @@ def smooth_tracks(
     """
     if order < 1:
         raise ValueError(f"fit: track_order must be >= 1, got {order}")
+    if reproj_px < 0:
+        raise ValueError(f"fit: track_reproj_px must be >= 0 (0: off), got {reproj_px}")
     xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
     ends, blend = (end_window_s, end_t), (blend_window_s, blend_order)
     for s in np.unique(seg):
