@@ -26,7 +26,8 @@ def moving_polynomial(
 
     With (n,) ``weights`` (> 0) each fit is weighted least squares instead: a sample of
     weight w counts as 1/w times as noisy (variance). Equal weights give the
-    Savitzky–Golay result (``savgol_filter`` itself is then used)."""
+    Savitzky–Golay result to rounding; without ``weights`` ``savgol_filter`` itself is
+    used."""
     from scipy.signal import savgol_filter
 
     p = np.asarray(values, dtype=np.float64)
