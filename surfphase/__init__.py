@@ -14,9 +14,9 @@ thread pools (``os.environ.setdefault``: a value the user exported wins):
   beside PyTorch's. It does not allow nested parallel kernels or concurrent calls from
   several Python threads; surfphase makes neither.
 
-On an x86-64 CPU with AVX2 it also pins the instruction set of PyTorch's CPU arithmetic,
-so that a fit gives the same bits on any such machine (a workstation, the nodes of a
-mixed cluster), not only on the one that ran it:
+On an x86-64 CPU with AVX2 it also pins the instruction set of PyTorch's and numpy's
+CPU arithmetic, so that a fit gives the same bits on any such machine (a workstation,
+the nodes of a mixed cluster), not only on the one that ran it:
 
 * ``ATEN_CPU_CAPABILITY=avx2``: PyTorch's own kernels (element-wise maths, reductions)
   take their AVX2 build, not the AVX-512 one a newer CPU would pick. The two round
@@ -27,14 +27,20 @@ mixed cluster), not only on the one that ran it:
   from the default on an AVX-512 machine.
 * ``ONEDNN_MAX_CPU_ISA=AVX2``: oneDNN (PyTorch's CPU convolutions: the embedded prior)
   generates no code beyond AVX2.
+* ``OPENBLAS_CORETYPE=Haswell``: the OpenBLAS that numpy and scipy bundle takes its
+  AVX2 kernels, not the ones it picks for the CPU (``SkylakeX`` on an AVX-512 Xeon,
+  ``Zen`` on AMD), which sum products in another order: on one AVX-512 machine the
+  mask stage's ``reproj_px`` of a benchmark session moved by 3e-13 px and the fit's
+  scene extent by 6e-18 m between the two (BENCHMARKS.md, determinism).
 
-The masks, centres, velocities and meshes do not depend on them (numpy and OpenCV give
-the same bits with their AVX-512 paths disabled). ``SURFPHASE_CPU_KERNELS=native``
-exported before the run leaves the three unset (each library then picks the machine's
+The masks, centres, velocities and meshes do not depend on the first three (numpy and
+OpenCV give the same bits with their AVX-512 paths disabled); OpenBLAS's kernels move
+them in the last bits only. ``SURFPHASE_CPU_KERNELS=native``
+exported before the run leaves the four unset (each library then picks the machine's
 widest paths); a value of one of them exported before the run wins.
 
-All of these only take effect when ``surfphase`` is imported before ``torch`` and
-``numba`` (``python -m surfphase`` and the workflow's rules always do); the fit records
+All of these only take effect when ``surfphase`` is imported before ``torch``,
+``numpy`` and ``numba`` (``python -m surfphase`` and the workflow's rules always do); the fit records
 the kernels it ran (``summary.json``: ``cpu_capability``).
 """
 
@@ -56,5 +62,6 @@ if os.environ.get("SURFPHASE_CPU_KERNELS", "avx2") != "native" and _has_avx2():
     os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")
     os.environ.setdefault("MKL_CBWR", "AVX2")
     os.environ.setdefault("ONEDNN_MAX_CPU_ISA", "AVX2")
+    os.environ.setdefault("OPENBLAS_CORETYPE", "Haswell")
 
 __version__ = "0.1.0"

@@ -40,6 +40,56 @@ def bit_for_bit() -> None:
         set_kernels(True, warn_only=True)
 
 
+#: The libraries whose arithmetic a fit's bits depend on, recorded by
+#: :func:`platform_record`.
+RECORDED_LIBRARIES = (
+    "torch",
+    "numpy",
+    "scipy",
+    "numba",
+    "llvmlite",
+    "opencv-contrib-python-headless",
+)
+
+
+def platform_record() -> dict[str, object]:
+    """What a run's floating-point results depend on beyond its inputs and settings:
+    ``{"cpu": the CPU's model name (``/proc/cpuinfo``; else :func:`platform.processor`),
+    "machine": the architecture, "python": its version, "libraries": {distribution:
+    version} of :data:`RECORDED_LIBRARIES` installed}``.
+
+    The same code and inputs give the same bits on one machine; the fit's kernels are
+    pinned so that CPUs agree (``import surfphase``), but a library release can still
+    round differently. The twenty-one benchmark draws rerun on another machine and
+    another install gave every figure that comes from the masks identically and the
+    held-out PSNR 0.18 dB apart a session on average, up to 1.4 dB (BENCHMARKS.md,
+    determinism), and neither run had recorded these: with this record two results say
+    which of them differed."""
+    import platform
+    from importlib import metadata
+
+    cpu = ""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            cpu = next(
+                (ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), ""
+            )
+    except OSError:
+        pass
+    libs = {}
+    for name in RECORDED_LIBRARIES:
+        try:
+            libs[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            continue
+    return {
+        "cpu": cpu or platform.processor(),
+        "machine": platform.machine(),
+        "python": platform.python_version(),
+        "libraries": libs,
+    }
+
+
 def _resolve(setting: str | torch.device | None) -> torch.device:
     if isinstance(setting, torch.device):
         return setting

@@ -32,11 +32,11 @@ print(json.dumps({
 """
 
 
-def _probe(first: str, **env: str) -> dict:
-    drop = ("ATEN_", "MKL_CBWR", "ONEDNN_", "SURFPHASE_CPU")
+def _probe(first: str, probe: str = PROBE, **env: str) -> dict:
+    drop = ("ATEN_", "MKL_CBWR", "ONEDNN_", "OPENBLAS_", "SURFPHASE_CPU")
     base = {k: v for k, v in os.environ.items() if not k.startswith(drop)}
     out = subprocess.run(
-        [sys.executable, "-c", PROBE, first],
+        [sys.executable, "-c", probe, first],
         env={**base, **env},
         capture_output=True,
         text=True,
@@ -58,3 +58,38 @@ def test_import_surfphase_pins_avx2_and_an_export_wins():
         "torch", ATEN_CPU_CAPABILITY="avx2", MKL_CBWR="AVX2", ONEDNN_MAX_CPU_ISA="AVX2"
     )
     assert pinned == explicit
+
+
+#: numpy's bundled OpenBLAS: the kernels it loaded (its own report) and a float64
+#: product whose bits depend on them.
+BLAS_PROBE = """
+import ctypes, glob, json, os, sys
+if sys.argv[1] == "surfphase":
+    import surfphase  # noqa: F401
+import numpy as np
+libs = glob.glob(os.path.join(os.path.dirname(np.__file__), os.pardir, "numpy.libs", "*openblas*"))
+core = ""
+if libs:
+    lib = ctypes.CDLL(libs[0])
+    name = next((n for n in ("scipy_openblas_get_corename64_", "openblas_get_corename64_",
+                             "openblas_get_corename") if hasattr(lib, n)), None)
+    if name:
+        fn = getattr(lib, name)
+        fn.restype = ctypes.c_char_p
+        core = fn().decode()
+rng = np.random.default_rng(0)
+a, b = rng.standard_normal((257, 263)), rng.standard_normal((263, 251))
+print(json.dumps({"core": core, "product": (a @ b).tobytes().hex()[:4096],
+                  "sum": float((a @ b).sum())}))
+"""
+
+
+def test_import_surfphase_pins_numpys_openblas_to_its_avx2_kernels():
+    pinned = _probe("surfphase", BLAS_PROBE)
+    if not pinned["core"]:
+        pytest.skip("numpy here does not bundle an OpenBLAS that reports its kernels")
+    assert pinned["core"] == "Haswell"
+    # The same bits as an explicit export; the switch leaves OpenBLAS its own choice.
+    assert pinned == _probe("numpy", BLAS_PROBE, OPENBLAS_CORETYPE="Haswell")
+    own = _probe("numpy", BLAS_PROBE)
+    assert _probe("surfphase", BLAS_PROBE, SURFPHASE_CPU_KERNELS="native") == own

@@ -47,6 +47,14 @@ def test_fit_reconstructs_and_tracks_the_rising_bubble(toy, tmp_path, capsys):
     # summary.json names the CPU kernels the fit ran: this process's (the pin itself is
     # tested in fresh interpreters, test_cpu_kernels.py).
     assert summary["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    # ... and the platform its bits depend on: the libraries' own version strings.
+    import numba
+    import scipy
+
+    libs = summary["platform"]["libraries"]
+    assert libs["torch"] == torch.__version__ and libs["numpy"] == np.__version__
+    assert libs["scipy"] == scipy.__version__ and libs["numba"] == numba.__version__
+    assert summary["platform"]["machine"] and summary["platform"]["python"].count(".") == 2
     s = load_surfels(out / "surfels.npz")
     F, N = s["alive"].shape
     assert s["means"].shape == (F, N, 3) and s["velocity"].shape == (F, N, 3)

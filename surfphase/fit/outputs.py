@@ -50,6 +50,7 @@ import pandas as pd
 import torch
 
 from surfphase.cameras import Camera
+from surfphase.device import platform_record
 from surfphase.fit import binding
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text
 from surfphase.tracks import moving_polynomial, savgol_window
@@ -910,6 +911,7 @@ def write_outputs(out_dir: Path, records, data, p: dict, background, extent: flo
         # bits depend on them).
         "cpu_capability": torch.backends.cpu.get_cpu_capability(),
         "mkl_cbwr": os.environ.get("MKL_CBWR", ""),
+        "platform": platform_record(),
     }
     atomic_write_json(out_dir / "summary.json", summary)
     with atomic_path(out_dir / "surfels.npz") as tmp, open(tmp, "wb") as fh:
