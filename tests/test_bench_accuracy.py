@@ -3,6 +3,7 @@ force, and a CI-sized run of the whole benchmark (table shape)."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -13,6 +14,7 @@ from skimage.measure import marching_cubes
 from surfphase.bench import accuracy as acc
 from surfphase.bench import accuracy_metrics as am
 from surfphase.eval.geometry import sample_surface
+from surfphase.io import code_fingerprint
 
 MM = 1e-3
 
@@ -282,3 +284,17 @@ def test_ci_sized_benchmark_table(tmp_path, capsys):
     )
     out = capsys.readouterr().out
     assert out.splitlines()[:5] == lines
+    # The native frames and masks are cached under the key of what made them: reused
+    # as they are, redone when the key differs (another code, calibration, setting).
+    native = tmp_path / "w" / "native" / "session01"
+    stamp, masks_json = native / "inputs.json", native / "masks" / "masks.json"
+    key = json.loads(stamp.read_text())
+    assert key["code"] == code_fingerprint(acc.NATIVE_SOURCES)
+    made = masks_json.stat().st_mtime_ns
+    skip = [*argv, "--skip-run", "--samples", "2000", *sum((["--set", s] for s in small), [])]
+    assert cli_main(skip) == 0 and masks_json.stat().st_mtime_ns == made
+    capsys.readouterr()
+    stamp.write_text(json.dumps({**key, "code": "an older code"}))
+    assert cli_main(skip) == 0
+    assert masks_json.stat().st_mtime_ns > made and json.loads(stamp.read_text()) == key
+    assert capsys.readouterr().out.splitlines()[:5] == lines  # the same masks again

@@ -51,9 +51,11 @@ bench, chooses the smoothing and writes the table.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -75,6 +77,7 @@ from surfphase.bench.accuracy_metrics import (
     velocity_scores,
 )
 from surfphase.eval import baseline as bl
+from surfphase.io import atomic_write_json, code_fingerprint
 
 #: Config on top of ``surfphase new-campaign``'s defaults.
 BENCH_CONFIG = {"ingest": {"scale": 0.5}, "refine": {"enabled": False}}
@@ -374,12 +377,40 @@ def write_run_campaign(synth_dir: Path, run_dir: Path, config: dict) -> pd.DataF
     return sheet
 
 
+#: The sources the native baseline's frames and masks come from, as
+#: :func:`~surfphase.io.code_fingerprint` parts (those of the workflow's ingest and mask
+#: rules).
+NATIVE_SOURCES = (
+    "__init__.py", "cameras.py", "io.py", "ingest.py", "video.py", "labformats.py",
+    "commands/ingest.py", "masks", "commands/mask.py",
+)  # fmt: skip
+
+
+def native_key(row: pd.Series, cameras_json: Path, mask_params: dict) -> dict:
+    """What a session's cached native frames and masks (:func:`native_baseline`) were
+    computed from: the sources' fingerprint, the calibration's SHA-256, the recordings
+    and frame rate of the sheet's ``row``, and the mask settings."""
+    cams = Path(cameras_json)
+    return {
+        "code": code_fingerprint(NATIVE_SOURCES),
+        "cameras_sha256": hashlib.sha256(cams.read_bytes()).hexdigest(),
+        "videos": {c: str(row[c]) for c in ("cam0", "cam1")},
+        "fps": float(row["fps"]),
+        "masks": json.loads(json.dumps(mask_params, sort_keys=True, default=str)),
+    }
+
+
 def native_baseline(
     session: str, row: pd.Series, cameras_json: Path, work: Path, mask_params: dict
 ) -> tuple[pd.DataFrame, float]:
     """The two-view centroid baseline from masks at the recordings' native resolution:
     ingest at scale 1 (undistorted, calibrated cameras), the mask stage, triangulation.
-    Returns (baseline table, fps)."""
+    Returns (baseline table, fps).
+
+    The frames and masks are kept in ``work`` with ``inputs.json``, the
+    :func:`native_key` they were made from, and reused only while it holds: a rescoring
+    (``--skip-run``) after a change of the ingest or mask code, the calibration or the
+    mask settings redoes them rather than scoring the old code's baseline."""
     from surfphase.cameras import load_cameras
     from surfphase.eval.stage import read_session
     from surfphase.ingest import ingest_session
@@ -387,6 +418,14 @@ def native_baseline(
 
     ing, msk = work / "ingest", work / "masks"
     fps = float(row["fps"])
+    key = native_key(row, cameras_json, mask_params)
+    stamp = work / "inputs.json"
+    if not stamp.is_file() or json.loads(stamp.read_text()) != key:
+        # Frames and masks cached without a key, or from another code, calibration,
+        # recording or setting: they would score another run's baseline. Redone.
+        stamp.unlink(missing_ok=True)
+        shutil.rmtree(ing, ignore_errors=True)
+        shutil.rmtree(msk, ignore_errors=True)
     if not (ing / "meta.json").is_file():
         ingest_session(
             session,
@@ -398,6 +437,8 @@ def native_baseline(
         )
     if not (msk / "masks.json").is_file():
         run_mask_stage(ing, msk, mask_params)
+    if not stamp.is_file():
+        atomic_write_json(stamp, key)
     data = read_session(ing, msk)
     tab = bl.baseline_bubbles(data["cameras"], data["labels"], data["frames"], data["fps"])
     return tab, fps
