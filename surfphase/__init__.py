@@ -35,13 +35,14 @@ the nodes of a mixed cluster), not only on the one that ran it:
 
 The masks, centres, velocities and meshes do not depend on the first three (numpy and
 OpenCV give the same bits with their AVX-512 paths disabled); OpenBLAS's kernels move
-them in the last bits only. ``SURFPHASE_CPU_KERNELS=native``
-exported before the run leaves the four unset (each library then picks the machine's
-widest paths); a value of one of them exported before the run wins.
+them in the last bits only. ``SURFPHASE_CPU_KERNELS=native`` exported before the run
+leaves the four unset (each library then picks the machine's widest paths); a value of
+one of them exported before the run wins.
 
 All of these only take effect when ``surfphase`` is imported before ``torch``,
-``numpy`` and ``numba`` (``python -m surfphase`` and the workflow's rules always do); the fit records
-the kernels it ran (``summary.json``: ``cpu_capability``).
+``numpy`` and ``numba`` (``python -m surfphase`` and the workflow's rules always do);
+the fit records the kernels it ran and the platform (``summary.json``:
+``cpu_capability``, ``platform``: the CPU model and the libraries' versions).
 """
 
 import os
