@@ -54,7 +54,8 @@ RECORDED_LIBRARIES = (
 
 def platform_record() -> dict[str, object]:
     """What a run's floating-point results depend on beyond its inputs and settings:
-    ``{"cpu": the CPU's model name (``/proc/cpuinfo``; else :func:`platform.processor`),
+    ``{"cpu": the CPU's model name, family, model and stepping (``/proc/cpuinfo``; else
+    :func:`platform.processor`),
     "machine": the architecture, "python": its version, "libraries": {distribution:
     version} of :data:`RECORDED_LIBRARIES` installed}``.
 
@@ -68,14 +69,20 @@ def platform_record() -> dict[str, object]:
     import platform
     from importlib import metadata
 
-    cpu = ""
+    info: dict[str, str] = {}
     try:
         with open("/proc/cpuinfo") as fh:
-            cpu = next(
-                (ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), ""
-            )
+            for ln in fh:  # the first processor's block
+                if not ln.strip():
+                    break
+                key, _, value = ln.partition(":")
+                info[key.strip()] = value.strip()
     except OSError:
         pass
+    cpu = info.get("model name", "")
+    if "model" in info:  # a virtual machine's name can hide the model ("Intel Xeon Processor")
+        cpu += f" (family {info.get('cpu family', '?')} model {info['model']}"
+        cpu += f" stepping {info.get('stepping', '?')})"
     libs = {}
     for name in RECORDED_LIBRARIES:
         try:
