@@ -298,3 +298,63 @@ def test_ci_sized_benchmark_table(tmp_path, capsys):
     assert cli_main(skip) == 0
     assert masks_json.stat().st_mtime_ns > made and json.loads(stamp.read_text()) == key
     assert capsys.readouterr().out.splitlines()[:5] == lines  # the same masks again
+    # Where the method would lose, the smoothing or the centres: from the same results.
+    from surfphase.bench.velocity_limits import PLAIN_RULES
+
+    assert cli_main(["bench", "velocity-limits", "--work", str(tmp_path / "w")]) == 0
+    assert "1 sessions: the method at most the bar on 1" in capsys.readouterr().out
+    lim = json.loads((tmp_path / "w" / "velocity_limits.json").read_text())["session01"]
+    assert lim["bar"] == pytest.approx(r["baseline_smoothed"]["relative_error"], rel=1e-9)
+    assert lim["method"] == pytest.approx(r["method"]["relative_error"], rel=1e-9)
+    assert lim["limit"] == "" and lim["centres"]["n"] > 0
+    grids = {k: {(w, o): e for w, o, e in g} for k, g in lim["grids"].items()}
+    # The fit's own bubbles.csv, recomputed from its surfels and anchors at the
+    # default track settings (3 ms, order 1), and the baseline's at the draw's bar.
+    assert grids["method"][(0.003, 1)] == pytest.approx(lim["method"], rel=1e-6)
+    bar_setting = (res["smoothing"]["window_s"], res["smoothing"]["order"])
+    assert grids["baseline"][bar_setting] == pytest.approx(lim["bar"], rel=1e-9)
+    for k in ("method", "plain", "baseline"):
+        assert lim[f"{k}_best"] == pytest.approx(min(grids[k].values()))
+    # Plain Savitzky–Golay of the centres, by hand: scipy's filter along each run of
+    # consecutive frames of an id, then np.gradient (the ground truth's convention).
+    from scipy.signal import savgol_filter
+
+    fit = tmp_path / "w" / "run" / "results" / "session01" / "fit"
+    raw = acc.method_track_table(fit, 0.0, 1, None, PLAIN_RULES)
+    row = pd.read_csv(tmp_path / "w" / "run" / "config" / "sessions.tsv", sep="\t").iloc[0]
+    sg = raw[raw["bubble"] >= 1].sort_values(["bubble", "frame"]).copy()
+    for _, g in sg.groupby("bubble"):
+        assert (np.diff(g["frame"]) == 1).all()  # one run per id in these 10 frames
+        n = 5 if len(g) >= 5 else len(g) - (1 - len(g) % 2)  # 5 ms at 1000 fps, odd
+        if len(g) >= 3:
+            xyz = savgol_filter(g[am.XYZ].to_numpy(), n, 1, axis=0, mode="interp")
+            sg.loc[g.index, am.VEL] = np.gradient(xyz, g["time_s"].to_numpy(), axis=0)
+    assert float(row["fps"]) == 1000.0
+    truth = pd.read_csv(f"{row['gt']}/bubbles.csv")
+    want = am.velocity_scores(sg, truth)["relative_error"]
+    assert grids["plain"][(0.005, 1)] == pytest.approx(want, rel=1e-9)
+
+
+def test_centre_noise_analytic():
+    """Centre errors against the truth: an error alternating ±e frame to frame has rms e
+    and jitter 2e; a constant offset has jitter 0; a reported centre beyond the gate is
+    not matched."""
+    from surfphase.bench.velocity_limits import centre_errors, centre_noise
+
+    e = 10e-6
+    f = np.arange(10)
+    truth = pd.DataFrame({"frame": f, "bubble": 1, "x": 1e-3 * f, "y": 0.0, "z": 0.0,
+                          "vx": 1.0, "vy": 0.0, "vz": 0.0, "r_eq": 1e-3})  # fmt: skip
+    alt = truth.copy()
+    alt["x"] += e * (-1.0) ** f
+    err = centre_errors(alt, truth)
+    assert len(err) == 10 and np.allclose(err["ex"], e * (-1.0) ** f)
+    rms, jitter = centre_noise(err)
+    assert rms == pytest.approx(e) and jitter == pytest.approx(2 * e)
+    off = truth.copy()
+    off["z"] += e
+    off.loc[4, "y"] += 0.6e-3  # beyond the 0.5 r_eq gate: unmatched
+    err = centre_errors(off, truth)
+    assert len(err) == 9
+    rms, jitter = centre_noise(err)
+    assert rms == pytest.approx(e) and jitter == pytest.approx(0.0, abs=1e-15)

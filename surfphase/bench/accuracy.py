@@ -97,39 +97,60 @@ def smoothed_table(base: pd.DataFrame, fps: float, window_s: float, order: int) 
     return out
 
 
-def method_track_table(
-    fit_dir: Path, window_s: float, order: int, min_track_frames: int | None = None
-) -> pd.DataFrame:
-    """The method's ``bubbles.csv`` as ``fit: track_window_s = window_s`` (and
-    ``track_order``; the other track settings their defaults,
-    :func:`~surfphase.fit.outputs.track_rules`) writes it, computed from the same fit's
-    ``surfels.npz`` and, when the session's masks have them (``fit: anchor_centres``),
-    their ``anchors.csv``
-    (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
-    the table is a function of these)."""
-    from surfphase.fit.outputs import anchored_table, bubble_table, nucleation_frames, track_rules
-    from surfphase.fit.stage import DEFAULTS
+def method_track_inputs(fit_dir: Path) -> tuple:
+    """What the method's ``bubbles.csv`` is computed from after the fit's optimisation:
+    ``(table, anchors, nucleation, n_frames)`` — the surfels' per-bubble table
+    (:func:`surfphase.fit.outputs.bubble_table`, unsmoothed), the masks' ``anchors.csv``
+    (``None`` without ``fit: anchor_centres``), the nucleation region's frames and the
+    frame count. Read once, for :func:`method_track_table` to smooth many ways."""
+    from surfphase.fit.outputs import bubble_table, nucleation_frames
     from surfphase.folders.fit import read_fit_surfels
     from surfphase.folders.ingest import read_ingest
     from surfphase.folders.masks import read_anchors, read_masks
 
-    rules = track_rules(DEFAULTS)
     arrays = read_fit_surfels(fit_dir)
     # The workflow's layout: results/<session>/{ingest,masks,fit}.
     ingest = read_ingest(Path(fit_dir).parent / "ingest")
     masks = Path(fit_dir).parent / "masks"
     anchors = read_anchors(masks, ingest.session)
+    frames = np.asarray(arrays["frame"], dtype=np.int64)
     if anchors is None:
-        return bubble_table(arrays, arrays["time_s"], arrays["frame"], window_s, order, rules)
+        return arrays, None, None, len(frames)
     cams = ingest.input_cameras()
     labels = list(read_masks(masks, cams, ingest.session).labels.values())
-    frames = np.asarray(arrays["frame"], dtype=np.int64)
     nuc = nucleation_frames(labels, frames, cams)
-    table = bubble_table(arrays, arrays["time_s"], frames)
+    return bubble_table(arrays, arrays["time_s"], frames), anchors, nuc, len(frames)
+
+
+def method_track_table(
+    fit_dir: Path | tuple,
+    window_s: float,
+    order: int,
+    min_track_frames: int | None = None,
+    rules: tuple | None = None,
+) -> pd.DataFrame:
+    """The method's ``bubbles.csv`` as ``fit: track_window_s = window_s`` (and
+    ``track_order``; the other track settings ``rules``, as
+    :func:`~surfphase.fit.outputs.track_rules` gives them, by default the fit's
+    defaults) writes it, computed from the same fit's ``surfels.npz`` and, when the
+    session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
+    (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
+    the table is a function of these). ``fit_dir``: the fit's folder, or what
+    :func:`method_track_inputs` read from it."""
+    from surfphase.fit.outputs import anchored_table, bubble_table, track_rules
+    from surfphase.fit.stage import DEFAULTS
+
+    if rules is None:
+        rules = track_rules(DEFAULTS)
+    table, anchors, nuc, n_frames = (
+        fit_dir if isinstance(fit_dir, tuple) else method_track_inputs(fit_dir)
+    )
+    if anchors is None:
+        return bubble_table(table, table["time_s"], table["frame"], window_s, order, rules)
     if min_track_frames is None:
         min_track_frames = int(DEFAULTS["min_track_frames"])
     return anchored_table(
-        table, anchors, nuc, window_s, order, min_track_frames, len(frames), rules,
+        table, anchors, nuc, window_s, order, min_track_frames, n_frames, rules,
         float(DEFAULTS["track_min_visible"]), int(DEFAULTS["track_gap_frames"]),
     )  # fmt: skip
 

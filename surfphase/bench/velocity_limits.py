@@ -1,0 +1,265 @@
+"""``surfphase bench velocity-limits``: where the method's velocity loses to the smoothed
+baseline on a run of ``surfphase bench accuracy``, is it the smoothing or the centres?
+
+Both the method and the classical baseline triangulate silhouette centres and smooth
+them along each track; they differ in the centres (the method's are sub-pixel, from the
+mask stage's anchors; the baseline's the native masks' binary centroids) and in the
+smoothing (the method's fixed in ``fit:``; the baseline's the best of a grid over the
+draw, an oracle choice). Per session of each bench work folder, from its existing
+results (nothing is run again):
+
+* ``bar``: the smoothed baseline's relative velocity error, at the draw's chosen
+  smoothing (the bar of ``accuracy.md``), and ``method``: the method's (``bubbles.csv``);
+* ``method_best``: the least error of the method's tracks over the grid of
+  :data:`~surfphase.bench.accuracy.SMOOTH_WINDOWS_S` × :data:`~surfphase.bench.accuracy.SMOOTH_ORDERS`
+  for the first moving polynomial (``fit: track_window_s``, ``track_order``), its other
+  track rules the defaults, chosen per session with the truth: an oracle no fixed setting
+  can beat on that session; ``plain_best``: the same with plain Savitzky–Golay smoothing
+  of the same centres (no end, blend, outlier or weighting rule); ``baseline_best``: the
+  baseline's own least error over the grid on that session;
+* the centres' own errors against the true centres on the bubble-frames both match
+  (:func:`centre_noise`): rms, and rms of the frame-to-frame change of the error (the
+  jitter that a velocity differentiates), µm;
+* ``limit`` where the method loses (``method`` > ``bar``): ``smoothing`` when some
+  smoothing of its centres would have won (``method_best`` or ``plain_best`` ≤ ``bar``),
+  else ``centres``: no choice of window and order on the grid reaches the bar. Each
+  error is over the bubble-frames its own table matches (``matched``: the baseline
+  leaves out centres its views disagree on, the method reports them), as in
+  ``accuracy.md``'s "v rel" columns.
+
+Over all the sessions given, :func:`fixed_sweep` counts the wins and the mean error of
+every fixed setting of the grid (the method's rules, and plain Savitzky–Golay): how far
+one setting for all sessions gets.
+
+Matching and errors: :mod:`surfphase.bench.accuracy_metrics` (gate 0.5 r_eq).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from surfphase.bench import accuracy as acc
+from surfphase.bench.accuracy_metrics import GATE_R_EQ, XYZ, velocity_scores
+from surfphase.eval import velocity
+
+#: The track rules off (:func:`surfphase.fit.outputs.track_rules`' order: end window,
+#: end t, blend window, blend order, outlier k, reproj px): plain Savitzky–Golay.
+PLAIN_RULES = (0.0, 0.0, 0.0, 2, 0.0, 0.0)
+
+
+def centre_errors(
+    pred: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = GATE_R_EQ
+) -> pd.DataFrame:
+    """Per reported bubble-frame (ids ≥ 1) matched to a true bubble within ``gate_r_eq``
+    (:func:`surfphase.eval.velocity.match_bubbles_relative`): ``frame, gt_bubble,
+    gt_r_eq, ex, ey, ez``, the reported centre minus the true one (m)."""
+    m = velocity.match_bubbles_relative(pred[pred["bubble"] >= 1], truth, gate_r_eq)
+    m = m[["frame", "bubble", "gt_bubble", "gt_r_eq"]].merge(
+        pred[["frame", "bubble", *XYZ]], on=["frame", "bubble"]
+    )
+    t = truth[["frame", "bubble", *XYZ]].rename(
+        columns={"bubble": "gt_bubble", **{a: f"t{a}" for a in XYZ}}
+    )
+    m = m.merge(t, on=["frame", "gt_bubble"])
+    for a in XYZ:
+        m[f"e{a}"] = m[a] - m[f"t{a}"]
+    return m[["frame", "gt_bubble", "gt_r_eq", "ex", "ey", "ez"]]
+
+
+def centre_noise(errors: pd.DataFrame) -> tuple[float, float]:
+    """``(rms, jitter)`` (m) of centre errors (:func:`centre_errors`' columns): the rms
+    3D error, and the rms 3D change of the error between consecutive frames of one true
+    bubble (what a velocity differentiates; a constant offset has none). NaN where
+    nothing counts."""
+    e = errors[["ex", "ey", "ez"]].to_numpy(np.float64)
+    steps = []
+    for _, g in errors.sort_values(["gt_bubble", "frame"]).groupby("gt_bubble"):
+        f = g["frame"].to_numpy()
+        d = np.diff(g[["ex", "ey", "ez"]].to_numpy(np.float64), axis=0)
+        steps.append(d[np.diff(f) == 1])
+    d = np.concatenate(steps) if steps else np.zeros((0, 3))
+    rms = float(np.sqrt((e**2).sum(axis=1).mean())) if len(e) else math.nan
+    jitter = float(np.sqrt((d**2).sum(axis=1).mean())) if len(d) else math.nan
+    return rms, jitter
+
+
+def _grid_errors(table: Callable[[float, int], pd.DataFrame], truth: pd.DataFrame) -> dict:
+    """``{(window_s, order): relative error}`` of ``table(window_s, order)`` on the grid."""
+    return {
+        (w, o): velocity_scores(table(w, o), truth)["relative_error"]
+        for w in acc.SMOOTH_WINDOWS_S
+        for o in acc.SMOOTH_ORDERS
+    }
+
+
+def _best(grid: dict) -> tuple[float, tuple[float, int] | None]:
+    """The least finite error of a grid and its (window_s, order)."""
+    fin = [(e, k) for k, e in grid.items() if np.isfinite(e)]
+    return min(fin) if fin else (math.nan, None)
+
+
+def session_limits(
+    fit_dir: Path, base: pd.DataFrame, fps: float, truth: pd.DataFrame, bar_smoothing
+) -> dict:
+    """One session's figures (module docstring). ``base``: its native baseline table
+    (:func:`surfphase.eval.baseline.baseline_bubbles`); ``bar_smoothing``: the draw's
+    ``(window_s, order)`` for the baseline."""
+    from surfphase.fit.outputs import track_rules
+    from surfphase.fit.stage import DEFAULTS
+
+    inputs = acc.method_track_inputs(fit_dir)
+    rules = track_rules(DEFAULTS)
+    bar_scores = velocity_scores(acc.smoothed_table(base, fps, *bar_smoothing), truth)
+    scores = velocity_scores(pd.read_csv(Path(fit_dir) / "bubbles.csv"), truth)
+    bar, method = bar_scores["relative_error"], scores["relative_error"]
+    grids = {
+        "method": _grid_errors(
+            lambda w, o: acc.method_track_table(inputs, w, o, None, rules), truth
+        ),
+        "plain": _grid_errors(
+            lambda w, o: acc.method_track_table(inputs, w, o, None, PLAIN_RULES), truth
+        ),
+        "baseline": _grid_errors(lambda w, o: acc.smoothed_table(base, fps, w, o), truth),
+    }
+    raw = acc.method_track_table(inputs, 0.0, 1, None, PLAIN_RULES)
+    em, eb = centre_errors(raw, truth), centre_errors(base, truth)
+    both = em.merge(eb, on=["frame", "gt_bubble", "gt_r_eq"], suffixes=("", "_b"))
+    m_rms, m_jit = centre_noise(both)
+    b_rms, b_jit = centre_noise(
+        both[["frame", "gt_bubble", "ex_b", "ey_b", "ez_b"]].set_axis(
+            ["frame", "gt_bubble", "ex", "ey", "ez"], axis=1
+        )
+    )
+    out = {"fps": fps, "bar": bar, "method": method}
+    out["matched"] = {"method": int(scores["matched"]), "bar": int(bar_scores["matched"])}
+    for name, grid in grids.items():
+        e, k = _best(grid)
+        out[f"{name}_best"], out[f"{name}_best_setting"] = e, k
+    reach = np.nanmin([out["method_best"], out["plain_best"], np.inf])
+    out["limit"] = "" if method <= bar else ("smoothing" if reach <= bar else "centres")
+    out["centres"] = {
+        "n": int(len(both)),
+        "r_eq_um": 1e6 * float(both["gt_r_eq"].mean()) if len(both) else math.nan,
+        "rms_um": {"method": 1e6 * m_rms, "baseline": 1e6 * b_rms},
+        "jitter_um": {"method": 1e6 * m_jit, "baseline": 1e6 * b_jit},
+    }
+    out["grids"] = {name: [[w, o, e] for (w, o), e in grid.items()] for name, grid in grids.items()}
+    return out
+
+
+def draw_limits(work: Path, log=print) -> dict[str, dict]:
+    """:func:`session_limits` for every scored session of a ``bench accuracy`` work
+    folder (its ``accuracy.json``, run campaign and native baseline cache)."""
+    work = Path(work).resolve()
+    result = work / "accuracy.json"
+    if not result.is_file():
+        raise FileNotFoundError(f"{work}: no accuracy.json (run `surfphase bench accuracy` first)")
+    res = json.loads(result.read_text())
+    sheet = pd.read_csv(
+        work / "run" / "config" / "sessions.tsv", sep="\t", dtype=str, keep_default_na=False
+    ).set_index("session")
+    names = [r["session"] for r in res["rows"]]
+    results = work / "run" / "results"
+    raw = acc._native_baselines(names, sheet, results, work, res["config"], log)
+    bar = (float(res["smoothing"]["window_s"]), int(res["smoothing"]["order"]))
+    out = {}
+    for s in names:
+        fit = results / s / "fit"
+        if s not in raw or not (fit / "bubbles.csv").is_file():
+            log(f"{work.name} {s}: no fit or no baseline; left out")
+            continue
+        truth = pd.read_csv(Path(sheet.loc[s, "gt"]) / "bubbles.csv")
+        out[s] = session_limits(fit, raw[s][0], raw[s][1], truth, bar)
+    return out
+
+
+def fixed_sweep(draws: dict[str, dict[str, dict]]) -> pd.DataFrame:
+    """Every fixed setting of the grid over all sessions: ``family`` (``method``: the
+    method's track rules; ``plain``: Savitzky–Golay), ``window_s``, ``order``, ``wins``
+    (sessions whose error is at most their ``bar``), ``sessions``, ``mean``, ``worst``."""
+    rows = []
+    for family in ("method", "plain"):
+        acc_rows: dict[tuple, list] = {}
+        for sessions in draws.values():
+            for r in sessions.values():
+                for w, o, e in r["grids"][family]:
+                    acc_rows.setdefault((w, o), []).append((e, r["bar"]))
+        for (w, o), pairs in acc_rows.items():
+            e = np.array([p[0] for p in pairs], np.float64)
+            b = np.array([p[1] for p in pairs], np.float64)
+            rows.append(
+                [family, w, o, int((e <= b).sum()), len(e), float(np.nanmean(e)),
+                 float(np.nanmax(e))]
+            )  # fmt: skip
+    return pd.DataFrame(
+        rows, columns=["family", "window_s", "order", "wins", "sessions", "mean", "worst"]
+    )
+
+
+def _setting(k) -> str:
+    return "" if k is None else f"{1e3 * k[0]:g} ms, {k[1]}"
+
+
+def format_limits(draws: dict[str, dict[str, dict]], sweep: pd.DataFrame, top: int = 3) -> str:
+    """Markdown: one row per session the method loses, the counts, and the sweep's best
+    fixed settings of each family."""
+    head = (
+        "| draw | session | fps | bar: baseline smoothed | method | method, best of grid "
+        "(setting) | plain SG, best of grid | baseline, best of grid | bubble-frames: method / "
+        "baseline | centre rms µm: "
+        "method / baseline | centre jitter µm: method / baseline | limit |"
+    )
+    lines = [head, "| " + " | ".join(["---"] * (head.count("|") - 1)) + " |"]
+    counts = {"sessions": 0, "wins": 0, "smoothing": 0, "centres": 0}
+    for draw, sessions in draws.items():
+        for s, r in sessions.items():
+            counts["sessions"] += 1
+            if not r["limit"]:
+                counts["wins"] += 1
+                continue
+            counts[r["limit"]] += 1
+            c = r["centres"]
+            lines.append(
+                f"| {draw} | {s} | {r['fps']:.0f} | {r['bar']:.4f} | {r['method']:.4f} | "
+                f"{r['method_best']:.4f} ({_setting(r['method_best_setting'])}) | "
+                f"{r['plain_best']:.4f} | {r['baseline_best']:.4f} | "
+                f"{r['matched']['method']} / {r['matched']['bar']} | "
+                f"{c['rms_um']['method']:.1f} / {c['rms_um']['baseline']:.1f} | "
+                f"{c['jitter_um']['method']:.1f} / {c['jitter_um']['baseline']:.1f} | "
+                f"{r['limit']} |"
+            )
+    lines += [
+        "",
+        f"{counts['sessions']} sessions: the method at most the bar on {counts['wins']}; of "
+        f"the others, {counts['smoothing']} where a smoothing of its centres chosen per "
+        f"session with the truth would reach it, {counts['centres']} where none on the grid "
+        "does.",
+        "",
+        "| fixed setting (all sessions) | window ms | order | wins | mean | worst |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for family, g in sweep.groupby("family", sort=False):
+        for _, r in g.sort_values(["wins", "mean"], ascending=[False, True]).head(top).iterrows():
+            lines.append(
+                f"| {family} | {1e3 * r['window_s']:g} | {r['order']} | "
+                f"{r['wins']} / {r['sessions']} | {r['mean']:.4f} | {r['worst']:.4f} |"
+            )
+    return "\n".join(lines)
+
+
+def run_velocity_limits(works: Sequence[Path], log=print) -> dict:
+    """:func:`draw_limits` of each work folder, :func:`fixed_sweep` over them all and
+    the table; each folder's figures also written to ``W/velocity_limits.json``."""
+    draws = {}
+    for w in works:
+        w = Path(w)
+        draws[w.name] = draw_limits(w, log)
+        (w / "velocity_limits.json").write_text(json.dumps(acc._finite(draws[w.name]), indent=1))
+    sweep = fixed_sweep(draws)
+    return {"draws": draws, "sweep": sweep, "table": format_limits(draws, sweep)}
