@@ -302,11 +302,13 @@ def test_ci_sized_benchmark_table(tmp_path, capsys):
     from surfphase.bench.velocity_limits import PLAIN_RULES
 
     assert cli_main(["bench", "velocity-limits", "--work", str(tmp_path / "w")]) == 0
-    assert "1 sessions: the method at most the bar on 1" in capsys.readouterr().out
+    assert "1 sessions: the method at most the bar on 1;" in capsys.readouterr().out
     lim = json.loads((tmp_path / "w" / "velocity_limits.json").read_text())["session01"]
     assert lim["bar"] == pytest.approx(r["baseline_smoothed"]["relative_error"], rel=1e-9)
     assert lim["method"] == pytest.approx(r["method"]["relative_error"], rel=1e-9)
     assert lim["limit"] == "" and lim["centres"]["n"] > 0
+    assert lim["paired"]["method"] == pytest.approx(r["paired"]["method"], rel=1e-9)
+    assert lim["paired"]["bar"] == pytest.approx(r["paired"]["baseline"], rel=1e-9)
     grids = {k: {(w, o): e for w, o, e in g} for k, g in lim["grids"].items()}
     # The fit's own bubbles.csv, recomputed from its surfels and anchors at the
     # default track settings (3 ms, order 1), and the baseline's at the draw's bar.

@@ -20,12 +20,15 @@ results (nothing is run again):
 * the centres' own errors against the true centres on the bubble-frames both match
   (:func:`centre_noise`): rms, and rms of the frame-to-frame change of the error (the
   jitter that a velocity differentiates), µm;
-* ``limit`` where the method loses (``method`` > ``bar``): ``smoothing`` when some
-  smoothing of its centres would have won (``method_best`` or ``plain_best`` ≤ ``bar``),
-  else ``centres``: no choice of window and order on the grid reaches the bar. Each
-  error is over the bubble-frames its own table matches (``matched``: the baseline
-  leaves out centres its views disagree on, the method reports them), as in
-  ``accuracy.md``'s "v rel" columns.
+* ``paired``: the method and the bar on the true bubble-frames both match (the "both
+  report" columns of ``accuracy.md``); each other error is over the bubble-frames its
+  own table matches (``matched``: the baseline leaves out centres its views disagree
+  on, the method reports them), as in its "v rel" columns;
+* ``limit`` where the method loses (``method`` > ``bar``): ``frames`` when it wins on
+  the bubble-frames both report (the loss is on bubble-frames the baseline leaves
+  out); else ``smoothing`` when some smoothing of its centres on the grid would reach
+  the bar, over its own bubble-frames or those both report (its track rules or plain
+  Savitzky–Golay); else ``centres``: no choice of window and order does.
 
 Over all the sessions given, :func:`fixed_sweep` counts the wins and the mean error of
 every fixed setting of the grid (the method's rules, and plain Savitzky–Golay): how far
@@ -45,7 +48,12 @@ import numpy as np
 import pandas as pd
 
 from surfphase.bench import accuracy as acc
-from surfphase.bench.accuracy_metrics import GATE_R_EQ, XYZ, velocity_scores
+from surfphase.bench.accuracy_metrics import (
+    GATE_R_EQ,
+    XYZ,
+    paired_velocity_scores,
+    velocity_scores,
+)
 from surfphase.eval import velocity
 
 #: The track rules off (:func:`surfphase.fit.outputs.track_rules`' order: end window,
@@ -89,13 +97,21 @@ def centre_noise(errors: pd.DataFrame) -> tuple[float, float]:
     return rms, jitter
 
 
-def _grid_errors(table: Callable[[float, int], pd.DataFrame], truth: pd.DataFrame) -> dict:
-    """``{(window_s, order): relative error}`` of ``table(window_s, order)`` on the grid."""
-    return {
-        (w, o): velocity_scores(table(w, o), truth)["relative_error"]
-        for w in acc.SMOOTH_WINDOWS_S
-        for o in acc.SMOOTH_ORDERS
-    }
+def _grid_errors(
+    table: Callable[[float, int], pd.DataFrame], truth: pd.DataFrame, bar: pd.DataFrame
+) -> tuple[dict, dict]:
+    """On the grid, ``{(window_s, order): relative error}`` of ``table(window_s, order)``
+    over its own matched bubble-frames, and ``{(window_s, order): (error, bar's error)}``
+    on the true bubble-frames that it and ``bar`` both match
+    (:func:`~surfphase.bench.accuracy_metrics.paired_velocity_scores`)."""
+    own, paired = {}, {}
+    for w in acc.SMOOTH_WINDOWS_S:
+        for o in acc.SMOOTH_ORDERS:
+            t = table(w, o)
+            own[(w, o)] = velocity_scores(t, truth)["relative_error"]
+            p = paired_velocity_scores(t, bar, truth)
+            paired[(w, o)] = (p["method"], p["baseline"])
+    return own, paired
 
 
 def _best(grid: dict) -> tuple[float, tuple[float, int] | None]:
@@ -115,18 +131,20 @@ def session_limits(
 
     inputs = acc.method_track_inputs(fit_dir)
     rules = track_rules(DEFAULTS)
-    bar_scores = velocity_scores(acc.smoothed_table(base, fps, *bar_smoothing), truth)
-    scores = velocity_scores(pd.read_csv(Path(fit_dir) / "bubbles.csv"), truth)
+    bar_table = acc.smoothed_table(base, fps, *bar_smoothing)
+    bar_scores = velocity_scores(bar_table, truth)
+    landed = pd.read_csv(Path(fit_dir) / "bubbles.csv")
+    scores = velocity_scores(landed, truth)
     bar, method = bar_scores["relative_error"], scores["relative_error"]
-    grids = {
-        "method": _grid_errors(
-            lambda w, o: acc.method_track_table(inputs, w, o, None, rules), truth
-        ),
-        "plain": _grid_errors(
-            lambda w, o: acc.method_track_table(inputs, w, o, None, PLAIN_RULES), truth
-        ),
-        "baseline": _grid_errors(lambda w, o: acc.smoothed_table(base, fps, w, o), truth),
+    same = paired_velocity_scores(landed, bar_table, truth)
+    tables = {
+        "method": lambda w, o: acc.method_track_table(inputs, w, o, None, rules),
+        "plain": lambda w, o: acc.method_track_table(inputs, w, o, None, PLAIN_RULES),
+        "baseline": lambda w, o: acc.smoothed_table(base, fps, w, o),
     }
+    grids, paired = {}, {}
+    for name, table in tables.items():
+        grids[name], paired[name] = _grid_errors(table, truth, bar_table)
     raw = acc.method_track_table(inputs, 0.0, 1, None, PLAIN_RULES)
     em, eb = centre_errors(raw, truth), centre_errors(base, truth)
     both = em.merge(eb, on=["frame", "gt_bubble", "gt_r_eq"], suffixes=("", "_b"))
@@ -141,8 +159,16 @@ def session_limits(
     for name, grid in grids.items():
         e, k = _best(grid)
         out[f"{name}_best"], out[f"{name}_best_setting"] = e, k
-    reach = np.nanmin([out["method_best"], out["plain_best"], np.inf])
-    out["limit"] = "" if method <= bar else ("smoothing" if reach <= bar else "centres")
+    out["paired"] = {"n": same["matched"], "method": same["method"], "bar": same["baseline"]}
+    reach = np.nanmin([out["method_best"], out["plain_best"], np.inf]) <= bar or any(
+        m <= b for name in ("method", "plain") for m, b in paired[name].values()
+    )
+    if method <= bar:
+        out["limit"] = ""
+    elif same["method"] <= same["baseline"]:
+        out["limit"] = "frames"
+    else:
+        out["limit"] = "smoothing" if reach else "centres"
     out["centres"] = {
         "n": int(len(both)),
         "r_eq_um": 1e6 * float(both["gt_r_eq"].mean()) if len(both) else math.nan,
@@ -209,14 +235,15 @@ def _setting(k) -> str:
 def format_limits(draws: dict[str, dict[str, dict]], sweep: pd.DataFrame, top: int = 3) -> str:
     """Markdown: one row per session the method loses, the counts, and the sweep's best
     fixed settings of each family."""
-    head = (
-        "| draw | session | fps | bar: baseline smoothed | method | method, best of grid "
-        "(setting) | plain SG, best of grid | baseline, best of grid | bubble-frames: method / "
-        "baseline | centre rms µm: "
-        "method / baseline | centre jitter µm: method / baseline | limit |"
-    )
-    lines = [head, "| " + " | ".join(["---"] * (head.count("|") - 1)) + " |"]
-    counts = {"sessions": 0, "wins": 0, "smoothing": 0, "centres": 0}
+    cols = [
+        "draw", "session", "fps", "bar: baseline smoothed", "method",
+        "both report: method / bar (n)", "method, best of grid (setting)",
+        "plain SG, best of grid (setting)", "baseline, best of grid (setting)",
+        "bubble-frames: method / baseline", "centre rms µm: method / baseline",
+        "centre jitter µm: method / baseline", "limit",
+    ]  # fmt: skip
+    lines = ["| " + " | ".join(cols) + " |", "| " + " | ".join(["---"] * len(cols)) + " |"]
+    counts = dict.fromkeys(("sessions", "wins", "frames", "smoothing", "centres"), 0)
     for draw, sessions in draws.items():
         for s, r in sessions.items():
             counts["sessions"] += 1
@@ -224,22 +251,25 @@ def format_limits(draws: dict[str, dict[str, dict]], sweep: pd.DataFrame, top: i
                 counts["wins"] += 1
                 continue
             counts[r["limit"]] += 1
-            c = r["centres"]
-            lines.append(
-                f"| {draw} | {s} | {r['fps']:.0f} | {r['bar']:.4f} | {r['method']:.4f} | "
-                f"{r['method_best']:.4f} ({_setting(r['method_best_setting'])}) | "
-                f"{r['plain_best']:.4f} | {r['baseline_best']:.4f} | "
-                f"{r['matched']['method']} / {r['matched']['bar']} | "
-                f"{c['rms_um']['method']:.1f} / {c['rms_um']['baseline']:.1f} | "
-                f"{c['jitter_um']['method']:.1f} / {c['jitter_um']['baseline']:.1f} | "
-                f"{r['limit']} |"
-            )
+            c, p = r["centres"], r["paired"]
+            cells = [
+                draw, s, f"{r['fps']:.0f}", f"{r['bar']:.4f}", f"{r['method']:.4f}",
+                f"{p['method']:.4f} / {p['bar']:.4f} ({p['n']})",
+                f"{r['method_best']:.4f} ({_setting(r['method_best_setting'])})",
+                f"{r['plain_best']:.4f} ({_setting(r['plain_best_setting'])})",
+                f"{r['baseline_best']:.4f} ({_setting(r['baseline_best_setting'])})",
+                f"{r['matched']['method']} / {r['matched']['bar']}",
+                f"{c['rms_um']['method']:.1f} / {c['rms_um']['baseline']:.1f}",
+                f"{c['jitter_um']['method']:.1f} / {c['jitter_um']['baseline']:.1f}",
+                r["limit"],
+            ]  # fmt: skip
+            lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
         f"{counts['sessions']} sessions: the method at most the bar on {counts['wins']}; of "
-        f"the others, {counts['smoothing']} where a smoothing of its centres chosen per "
-        f"session with the truth would reach it, {counts['centres']} where none on the grid "
-        "does.",
+        f"the others, {counts['frames']} where it wins on the bubble-frames both report, "
+        f"{counts['smoothing']} where a smoothing of its centres chosen per session with "
+        f"the truth would reach the bar, {counts['centres']} where none on the grid does.",
         "",
         "| fixed setting (all sessions) | window ms | order | wins | mean | worst |",
         "| --- | --- | --- | --- | --- | --- |",
