@@ -28,8 +28,8 @@ the nodes of a mixed cluster), not only on the one that ran it:
 * ``ONEDNN_MAX_CPU_ISA=AVX2``: oneDNN (PyTorch's CPU convolutions: the embedded prior)
   generates no code beyond AVX2.
 * ``OPENBLAS_CORETYPE=Haswell``: the OpenBLAS that numpy and scipy bundle takes its
-  AVX2 kernels, not the ones it picks for the CPU (``SkylakeX`` on an AVX-512 Xeon,
-  ``Zen`` on AMD), which sum products in another order: on one AVX-512 machine the
+  AVX2 kernels, not the ones it picks for the CPU (``SkylakeX`` on an AVX-512 Xeon;
+  on AMD's Zen it takes the Haswell ones by itself), which sum products in another order: on one AVX-512 machine the
   mask stage's ``reproj_px`` of a benchmark session moved by 3e-13 px and the fit's
   scene extent by 6e-18 m between the two (BENCHMARKS.md, determinism).
 

@@ -98,19 +98,21 @@ def centre_noise(errors: pd.DataFrame) -> tuple[float, float]:
 
 
 def _grid_errors(
-    table: Callable[[float, int], pd.DataFrame], truth: pd.DataFrame, bar: pd.DataFrame
+    table: Callable[[float, int], pd.DataFrame], truth: pd.DataFrame, bar: pd.DataFrame | None
 ) -> tuple[dict, dict]:
     """On the grid, ``{(window_s, order): relative error}`` of ``table(window_s, order)``
     over its own matched bubble-frames, and ``{(window_s, order): (error, bar's error)}``
     on the true bubble-frames that it and ``bar`` both match
-    (:func:`~surfphase.bench.accuracy_metrics.paired_velocity_scores`)."""
+    (:func:`~surfphase.bench.accuracy_metrics.paired_velocity_scores`; empty when
+    ``bar`` is None)."""
     own, paired = {}, {}
     for w in acc.SMOOTH_WINDOWS_S:
         for o in acc.SMOOTH_ORDERS:
             t = table(w, o)
             own[(w, o)] = velocity_scores(t, truth)["relative_error"]
-            p = paired_velocity_scores(t, bar, truth)
-            paired[(w, o)] = (p["method"], p["baseline"])
+            if bar is not None:
+                p = paired_velocity_scores(t, bar, truth)
+                paired[(w, o)] = (p["method"], p["baseline"])
     return own, paired
 
 
@@ -144,7 +146,9 @@ def session_limits(
     }
     grids, paired = {}, {}
     for name, table in tables.items():
-        grids[name], paired[name] = _grid_errors(table, truth, bar_table)
+        # The baseline's own grid needs no pairing with itself.
+        paired_with = None if name == "baseline" else bar_table
+        grids[name], paired[name] = _grid_errors(table, truth, paired_with)
     raw = acc.method_track_table(inputs, 0.0, 1, None, PLAIN_RULES)
     em, eb = centre_errors(raw, truth), centre_errors(base, truth)
     both = em.merge(eb, on=["frame", "gt_bubble", "gt_r_eq"], suffixes=("", "_b"))
