@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-import torch
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # imported where a device is resolved: platform_record needs none
+    import torch
 
 
 def resolve_device(setting: str | torch.device | None = "auto") -> torch.device:
@@ -33,6 +36,8 @@ def bit_for_bit() -> None:
     every process about 1.7 s on the development machine (a fifth of a small fit job);
     nothing here uses ``torch.compile``.
     """
+    import torch
+
     set_kernels = getattr(torch._C, "_set_deterministic_algorithms", None)
     if set_kernels is None:  # a torch without it: the public call, inductor and all
         torch.use_deterministic_algorithms(True, warn_only=True)
@@ -98,6 +103,8 @@ def platform_record() -> dict[str, object]:
 
 
 def _resolve(setting: str | torch.device | None) -> torch.device:
+    import torch
+
     if isinstance(setting, torch.device):
         return setting
     s = (setting or "auto").lower()

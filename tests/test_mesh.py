@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pandas as pd
@@ -289,6 +291,30 @@ def test_cli_writes_ply_per_frame_with_velocity(tmp_path, capsys):
     assert summary["pvd"] == "sphere.pvd"
     series = _read_pvd(out / "sphere.pvd")
     assert series == [(k / 1500, f"vtk/{f:06d}.vtp") for k, f in enumerate((3, 4))]
+
+
+def test_hull_mesh_command_never_imports_torch(tmp_path):
+    """`surfphase mesh --threads N` with the hull surface (the default) leaves torch,
+    whose import costs 2-4 s a job, unloaded up to the stage's own checks; the fused
+    surface imports it and takes the threads."""
+    fit, ingest = _write_fit(tmp_path)
+    code = (
+        "import sys\n"
+        "from surfphase.cli import main\n"
+        "argv = ['mesh', '--fit', sys.argv[1], '--ingest', sys.argv[2], '--out', sys.argv[3],"
+        " '--threads', '1', '--device', 'cpu'] + sys.argv[4:]\n"
+        "rc = main(argv)\n"
+        "print(rc, 'torch' in sys.modules)\n"
+        "if 'torch' in sys.modules: print(sys.modules['torch'].get_num_threads())\n"
+    )
+    args = [sys.executable, "-c", code, str(fit), str(ingest), str(tmp_path / "out")]
+    r = subprocess.run(args, capture_output=True, text=True, check=True)
+    assert r.stdout.split() == ["2", "False"]  # stopped by the hull's missing masks
+    assert "no masks folder" in r.stderr
+    fused = '{"surface": "fused", "voxels": 24, "n_orbit": 2, "orbit_step_deg": 60}'
+    r = subprocess.run([*args, "--params-json", fused], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[-3:] == ["0", "True", "1"]
 
 
 def test_bad_inputs_name_the_file(tmp_path):

@@ -8,10 +8,12 @@ from surfphase.commands import read_json_object
 
 
 def _run(args: argparse.Namespace) -> int:
-    from surfphase.mesh.stage import run_mesh, run_mesh_window
+    from surfphase.mesh.stage import mesh_params, run_mesh, run_mesh_window
 
     params = read_json_object(args.params_json, what="mesh parameters")
-    if args.threads:
+    # Only the fused surface renders, with torch; the hull (the default) never imports
+    # it, whose import costs 2-4 s a job.
+    if args.threads and mesh_params(params)["surface"] == "fused":
         import torch
 
         torch.set_num_threads(args.threads)

@@ -44,16 +44,19 @@ import os
 import shutil
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
-import torch
 
 from surfphase.cameras import Camera
 from surfphase.device import platform_record
 from surfphase.fit import binding
 from surfphase.io import atomic_path, atomic_write_json, atomic_write_text
 from surfphase.tracks import moving_polynomial, savgol_window
+
+if TYPE_CHECKING:  # imported where the surfels are rendered: readers of the fit need none
+    import torch
 
 PER_SURFEL = ("means", "quats", "log_scales", "colors", "opacity")
 
@@ -98,6 +101,8 @@ def frame_colors(
 ) -> torch.Tensor:
     """Colours of frame position ``frame``'s live surfels as seen by C cameras
     (``viewmats`` (C, 4, 4)): (N, D), or (C, N, D) when the fit has a shading curve."""
+    import torch
+
     from surfphase.render.shading import view_colors
 
     a = np.asarray(surfels["alive"][frame], bool)
@@ -119,6 +124,8 @@ def rasterize_frame(
     ``cameras`` (one size), without gradients: ``(colors (C, H, W, D) premultiplied,
     alpha (C, H, W, 1))`` on ``device``, nothing composited yet. ``clamp_colors``: the
     surfel colours clamped to [0, 1] first (the orbit views)."""
+    import torch
+
     from surfphase.render import camera_tensors, rasterize_surfels
 
     a = np.asarray(surfels["alive"][frame], bool)
@@ -808,6 +815,8 @@ def render_surfels(
     """Render frame index ``frame`` (0-based position in the file) of ``surfels`` into
     ``cameras`` over ``backgrounds`` ((C, H, W, D) images; default the constant
     ``surfels["background"]``); returns (C, H, W, D) float32 in [0, 1]."""
+    import torch
+
     from surfphase.render import over_background
 
     dev = torch.device(device)
@@ -827,6 +836,7 @@ def _to_png(img: np.ndarray) -> np.ndarray:
 def write_outputs(out_dir: Path, records, data, p: dict, background, extent: float, device):
     """Write surfels.npz, bubbles.csv, curves.csv, renders/, summary.json; return summary."""
     import cv2
+    import torch
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

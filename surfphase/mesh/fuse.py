@@ -12,11 +12,14 @@ left out of that view's average, as in KinectFusion. A voxel that no view averag
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
 from surfphase.cameras import Camera
+
+if TYPE_CHECKING:  # torch is imported where the depths are rendered: the hull meshes need none
+    import torch
 
 
 def render_depths(
@@ -45,6 +48,7 @@ def render_depths(
         (C, H, W) float64 camera-z depth in metres; ``inf`` where the pixel is empty
         (free space), NaN where unknown.
     """
+    import torch
     from scipy import ndimage
 
     from surfphase.render import camera_tensors, rasterize_surfels

@@ -140,10 +140,13 @@ def _open_session(
     device: str,
     masks_dir: Path | None = None,
 ) -> _Session:
-    from surfphase.device import resolve_device
-
     p = mesh_params(params)
-    dev = str(resolve_device(device))
+    if p["surface"] == "fused":  # it renders, with torch
+        from surfphase.device import resolve_device
+
+        dev = str(resolve_device(device))
+    else:  # the hulls are numpy on the CPU: no torch to import (2-4 s a job)
+        dev = "cpu"
     surfels_path = fit_dir / SURFELS
     surfels = read_fit_surfels(fit_dir)
     ingest = read_ingest(ingest_dir, stacks=False, min_cameras=0)
