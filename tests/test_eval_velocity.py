@@ -278,3 +278,54 @@ def test_baseline_leaves_out_centroids_the_two_views_disagree_on():
     assert every.frame.tolist() == frames.tolist()
     err = np.linalg.norm(every[["vx", "vy", "vz"]].to_numpy() - v, axis=1)
     assert err.max() > 0.25 * np.linalg.norm(v)
+
+
+def test_matching_equals_a_frame_by_frame_selection():
+    """The matchers (grouped once, numpy per frame) against the plain per-frame pandas
+    selection they replaced, on shuffled random tables: frames only one side has,
+    non-finite centres, a true bubble with r_eq 0, several bubbles a frame."""
+    from surfphase.eval.velocity import MATCH_COLUMNS, gated_assignment
+
+    def reference(pred, truth, gate, relative):
+        rows, xyz, vel = [], ["x", "y", "z"], ["vx", "vy", "vz"]
+        for f, p in pred.groupby("frame", sort=True):
+            g = truth[truth["frame"] == f]
+            p = p[np.isfinite(p[xyz].to_numpy(np.float64)).all(axis=1)]
+            keep = np.isfinite(g[xyz].to_numpy(np.float64)).all(axis=1)
+            g = g[keep & (g["r_eq"] > 0)] if relative else g[keep]
+            if p.empty or g.empty:
+                continue
+            d = np.linalg.norm(p[xyz].to_numpy()[:, None] - g[xyz].to_numpy()[None], axis=-1)
+            r = g["r_eq"].to_numpy()
+            for i, j in gated_assignment(d / r[None] if relative else d, gate):
+                v, gv = p[vel].to_numpy()[i], g[vel].to_numpy()[j]
+                row = [int(f), int(p["bubble"].iloc[i]), int(g["bubble"].iloc[j]), d[i, j],
+                       *v, *gv, np.linalg.norm(v - gv)]  # fmt: skip
+                rows.append([*row, r[j]] if relative else row)
+        cols = [*MATCH_COLUMNS, "gt_r_eq"] if relative else MATCH_COLUMNS
+        return pd.DataFrame(rows, columns=cols)
+
+    rng = np.random.default_rng(4)
+    matched = 0
+    for _ in range(20):
+        n_t, n_p = int(rng.integers(5, 40)), int(rng.integers(5, 40))
+        truth = pd.DataFrame(
+            {"frame": rng.integers(0, 8, n_t), "bubble": rng.integers(1, 6, n_t)}
+            | {k: rng.normal(0, 1e-3, n_t) for k in ("x", "y", "z", "vx", "vy", "vz")}
+            | {"r_eq": rng.uniform(0.3e-3, 1e-3, n_t)}
+        )
+        truth.loc[rng.random(n_t) < 0.1, "r_eq"] = 0.0
+        pred = pd.DataFrame(
+            {"frame": rng.integers(0, 10, n_p), "bubble": rng.integers(1, 9, n_p)}
+            | {k: rng.normal(0, 1e-3, n_p) for k in ("x", "y", "z", "vx", "vy", "vz")}
+        )
+        pred.loc[rng.random(n_p) < 0.1, "y"] = np.nan
+        truth.loc[rng.random(n_t) < 0.1, "z"] = np.inf
+        pred.loc[rng.random(n_p) < 0.1, "vx"] = np.nan  # matched; its error unknown
+        for gate in (0.5, 2.0):
+            got = velocity.match_bubbles_relative(pred, truth, gate)
+            pd.testing.assert_frame_equal(got, reference(pred, truth, gate, True))
+            got = velocity.match_bubbles(pred, truth, gate * 1e-3)
+            pd.testing.assert_frame_equal(got, reference(pred, truth, gate * 1e-3, False))
+            matched += len(got)
+    assert matched > 100  # the cases pair many bubbles, not only the empty ones

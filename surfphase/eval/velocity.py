@@ -42,6 +42,38 @@ MATCH_COLUMNS = [
 ]  # fmt: skip
 
 
+def _match_rows(
+    pred: pd.DataFrame, truth: pd.DataFrame, gate: float, size: np.ndarray | None
+) -> list[list]:
+    """Per frame (ascending; a frame's rows in table order), the predicted and true rows
+    with finite centres paired by :func:`gated_assignment` on the centre distance, over
+    ``size`` (the truth's (M,) r_eq, m; rows with r_eq ≤ 0 left out) where given; one
+    :data:`MATCH_COLUMNS` row per pair, plus the true r_eq where ``size`` is given."""
+    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
+    P, PV = pred[xyz].to_numpy(np.float64), pred[vel].to_numpy(np.float64)
+    G, GV = truth[xyz].to_numpy(np.float64), truth[vel].to_numpy(np.float64)
+    pb, gb = pred["bubble"].to_numpy(), truth["bubble"].to_numpy()
+    ok_p = np.isfinite(P).all(axis=1)
+    ok_g = np.isfinite(G).all(axis=1) if size is None else np.isfinite(G).all(axis=1) & (size > 0)
+    by_frame = truth.groupby("frame", sort=False).indices
+    rows: list[list] = []
+    for f, pi in sorted(pred.groupby("frame", sort=False).indices.items()):
+        gi = by_frame.get(f)
+        if gi is None:
+            continue
+        pi, gi = pi[ok_p[pi]], gi[ok_g[gi]]
+        if not len(pi) or not len(gi):
+            continue
+        d = np.linalg.norm(P[pi][:, None] - G[gi][None], axis=-1)
+        r = None if size is None else size[gi]
+        for i, j in gated_assignment(d if r is None else d / r[None], gate):
+            v, gv = PV[pi[i]], GV[gi[j]]
+            row = [int(f), int(pb[pi[i]]), int(gb[gi[j]]), float(d[i, j]),
+                   *v, *gv, float(np.linalg.norm(v - gv))]  # fmt: skip
+            rows.append(row if r is None else [*row, float(r[j])])
+    return rows
+
+
 def match_bubbles(
     pred: pd.DataFrame, truth: pd.DataFrame, max_dist: float = MAX_MATCH_DIST
 ) -> pd.DataFrame:
@@ -55,24 +87,7 @@ def match_bubbles(
         Columns :data:`MATCH_COLUMNS`; ``abs_error_mps`` is NaN where a velocity is
         unknown.
     """
-    rows = []
-    for f, p in pred.groupby("frame", sort=True):
-        g = truth[truth["frame"] == f]
-        p = p[np.isfinite(p[["x", "y", "z"]].to_numpy()).all(axis=1)]
-        g = g[np.isfinite(g[["x", "y", "z"]].to_numpy()).all(axis=1)]
-        if p.empty or g.empty:
-            continue
-        P = p[["x", "y", "z"]].to_numpy(np.float64)
-        G = g[["x", "y", "z"]].to_numpy(np.float64)
-        d = np.linalg.norm(P[:, None] - G[None], axis=-1)
-        for i, j in gated_assignment(d, max_dist):
-            v = p[["vx", "vy", "vz"]].to_numpy(np.float64)[i]
-            gv = g[["vx", "vy", "vz"]].to_numpy(np.float64)[j]
-            rows.append(
-                [int(f), int(p["bubble"].iloc[i]), int(g["bubble"].iloc[j]), float(d[i, j]),
-                 *v, *gv, float(np.linalg.norm(v - gv))]
-            )  # fmt: skip
-    return pd.DataFrame(rows, columns=MATCH_COLUMNS)
+    return pd.DataFrame(_match_rows(pred, truth, max_dist, None), columns=MATCH_COLUMNS)
 
 
 def velocity_errors(matches: pd.DataFrame) -> dict:
@@ -111,26 +126,8 @@ def match_bubbles_relative(
     """
     if "r_eq" not in truth.columns:
         raise ValueError("relative matching needs the truth's r_eq column (m)")
-    rows = []
-    xyz, vel = ["x", "y", "z"], ["vx", "vy", "vz"]
-    for f, p in pred.groupby("frame", sort=True):
-        g = truth[truth["frame"] == f]
-        p = p[np.isfinite(p[xyz].to_numpy(np.float64)).all(axis=1)]
-        g = g[np.isfinite(g[xyz].to_numpy(np.float64)).all(axis=1) & (g["r_eq"] > 0)]
-        if p.empty or g.empty:
-            continue
-        d = np.linalg.norm(
-            p[xyz].to_numpy(np.float64)[:, None] - g[xyz].to_numpy(np.float64)[None], axis=-1
-        )
-        r = g["r_eq"].to_numpy(np.float64)
-        cost = d / r[None]
-        for i, j in gated_assignment(cost, gate_r_eq):
-            v = p[vel].to_numpy(np.float64)[i]
-            gv = g[vel].to_numpy(np.float64)[j]
-            rows.append(
-                [int(f), int(p["bubble"].iloc[i]), int(g["bubble"].iloc[j]), float(d[i, j]),
-                 *v, *gv, float(np.linalg.norm(v - gv)), float(r[j])]
-            )  # fmt: skip
+    size = truth["r_eq"].to_numpy(np.float64)
+    rows = _match_rows(pred, truth, gate_r_eq, size)
     return pd.DataFrame(rows, columns=[*MATCH_COLUMNS, "gt_r_eq"])
 
 
