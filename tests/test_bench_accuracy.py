@@ -317,6 +317,16 @@ def test_ci_sized_benchmark_table(tmp_path, capsys):
     assert grids["baseline"][bar_setting] == pytest.approx(lim["bar"], rel=1e-9)
     for k in ("method", "plain", "baseline"):
         assert lim[f"{k}_best"] == pytest.approx(min(grids[k].values()))
+    # track_min_visible's sweep: the default's is bubbles.csv's; a higher threshold
+    # gives fewer bubble-frames a velocity. The bubble-frames only the method gives one.
+    from surfphase.fit.params import DEFAULTS as FIT
+
+    vis = {v: (e, n) for v, e, n in lim["min_visible"]}
+    assert vis[FIT["track_min_visible"]][0] == pytest.approx(lim["method"], rel=1e-6)
+    counts = [vis[v][1] for v in sorted(vis)]
+    assert counts == sorted(counts, reverse=True) and counts[0] > 0
+    only = lim["method_only"]
+    assert only["n"] == lim["matched"]["method"] - lim["paired"]["n"]
     # Plain Savitzky–Golay of the centres, by hand: scipy's filter along each run of
     # consecutive frames of an id, then np.gradient (the ground truth's convention).
     from scipy.signal import savgol_filter

@@ -128,11 +128,12 @@ def method_track_table(
     order: int,
     min_track_frames: int | None = None,
     rules: tuple | None = None,
+    min_visible: float | None = None,
 ) -> pd.DataFrame:
     """The method's ``bubbles.csv`` as ``fit: track_window_s = window_s`` (and
     ``track_order``; the other track settings ``rules``, as
-    :func:`~surfphase.fit.outputs.track_rules` gives them, by default the fit's
-    defaults) writes it, computed from the same fit's ``surfels.npz`` and, when the
+    :func:`~surfphase.fit.outputs.track_rules` gives them, and ``track_min_visible =
+    min_visible``, by default the fit's defaults) writes it, computed from the same fit's ``surfels.npz`` and, when the
     session's masks have them (``fit: anchor_centres``), their ``anchors.csv``
     (:func:`surfphase.fit.outputs.bubble_table`, :func:`~surfphase.fit.outputs.anchored_table`:
     the table is a function of these). ``fit_dir``: the fit's folder, or what
@@ -149,9 +150,11 @@ def method_track_table(
         return bubble_table(table, table["time_s"], table["frame"], window_s, order, rules)
     if min_track_frames is None:
         min_track_frames = int(DEFAULTS["min_track_frames"])
+    if min_visible is None:
+        min_visible = float(DEFAULTS["track_min_visible"])
     return anchored_table(
         table, anchors, nuc, window_s, order, min_track_frames, n_frames, rules,
-        float(DEFAULTS["track_min_visible"]), int(DEFAULTS["track_gap_frames"]),
+        min_visible, int(DEFAULTS["track_gap_frames"]),
     )  # fmt: skip
 
 

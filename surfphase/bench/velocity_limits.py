@@ -24,6 +24,14 @@ results (nothing is run again):
   report" columns of ``accuracy.md``); each other error is over the bubble-frames its
   own table matches (``matched``: the baseline leaves out centres its views disagree
   on, the method reports them), as in its "v rel" columns;
+* ``method_only``: the bubble-frames whose velocity the method reports and the bar
+  does not (both matched to the truth), their count, how many of them the image border
+  cuts or another bubble hides in a view (``anchors.csv``'s ``visible`` under 1) and
+  the range of that share, and their mean |error| (m/s) beside the mean over the
+  bubble-frames both report;
+* ``min_visible``: the method's error, and the bubble-frames it gives a velocity, at
+  each ``fit: track_min_visible`` of :data:`MIN_VISIBLE_GRID` (a centre with less of
+  its silhouette inside a view gets none), the other track settings the defaults;
 * ``limit`` where the method loses (``method`` > ``bar``): ``frames`` when it wins on
   the bubble-frames both report (the loss is on bubble-frames the baseline leaves
   out); else ``smoothing`` when some smoothing of its centres on the grid would reach
@@ -32,7 +40,8 @@ results (nothing is run again):
 
 Over all the sessions given, :func:`fixed_sweep` counts the wins and the mean error of
 every fixed setting of the grid (the method's rules, and plain Savitzky–Golay): how far
-one setting for all sessions gets.
+one setting for all sessions gets; :func:`visible_sweep` the same for each
+``track_min_visible``.
 
 Matching and errors: :mod:`surfphase.bench.accuracy_metrics` (gate 0.5 r_eq).
 """
@@ -55,6 +64,10 @@ from surfphase.bench.accuracy_metrics import (
     velocity_scores,
 )
 from surfphase.eval import velocity
+
+#: ``fit: track_min_visible`` values scored (:func:`session_limits`' ``min_visible``):
+#: 0 gives every centre a velocity; 1 none to a bubble the border cuts or another hides.
+MIN_VISIBLE_GRID = (0.0, 0.25, 0.4, 0.5, 0.6, 0.75, 1.0)
 
 #: The track rules off (:func:`surfphase.fit.outputs.track_rules`' order: end window,
 #: end t, blend window, blend order, outlier k, reproj px): plain Savitzky–Golay.
@@ -116,6 +129,47 @@ def _grid_errors(
     return own, paired
 
 
+def method_only(
+    pred: pd.DataFrame, bar: pd.DataFrame, truth: pd.DataFrame, anchors: pd.DataFrame | None
+) -> dict:
+    """The true bubble-frames that ``pred`` (ids ≥ 1) matches with a known velocity and
+    ``bar`` does not: ``n``; ``partial``, how many of them have ``anchors``' ``visible``
+    share under 1 (cut by the border or hidden in a view; NaN without anchors) and its
+    ``visible_min``/``visible_max`` over them; ``mean_abs_mps`` their mean |velocity
+    error| and ``both_mean_abs_mps`` that over the bubble-frames both match (m/s)."""
+    keys = ["frame", "gt_bubble"]
+    found = []
+    for table in (pred, bar):
+        m = velocity.match_bubbles_relative(table[table["bubble"] >= 1], truth)
+        found.append(m[np.isfinite(m["abs_error_mps"].to_numpy(np.float64))])
+    mine, theirs = found
+    both = mine.merge(theirs[keys], on=keys, how="left", indicator=True)["_merge"] == "both"
+    only = mine[~both.to_numpy()]
+    out = {
+        "n": int(len(only)),
+        "mean_abs_mps": float(only["abs_error_mps"].mean()) if len(only) else math.nan,
+        "both_mean_abs_mps": float(mine[both.to_numpy()]["abs_error_mps"].mean())
+        if both.any()
+        else math.nan,
+        "partial": math.nan,
+        "visible_min": math.nan,
+        "visible_max": math.nan,
+    }
+    if anchors is not None and "visible" in anchors.columns and len(only):
+        vis = (
+            only[["frame", "bubble"]]
+            .merge(anchors[["frame", "bubble", "visible"]], on=["frame", "bubble"], how="left")[
+                "visible"
+            ]
+            .to_numpy(np.float64)
+        )
+        part = vis[vis < 1]
+        out["partial"] = int(len(part))
+        if len(part):
+            out["visible_min"], out["visible_max"] = float(part.min()), float(part.max())
+    return out
+
+
 def _best(grid: dict) -> tuple[float, tuple[float, int] | None]:
     """The least finite error of a grid and its (window_s, order)."""
     fin = [(e, k) for k, e in grid.items() if np.isfinite(e)]
@@ -149,6 +203,12 @@ def session_limits(
         # The baseline's own grid needs no pairing with itself.
         paired_with = None if name == "baseline" else bar_table
         grids[name], paired[name] = _grid_errors(table, truth, paired_with)
+    default = (float(DEFAULTS["track_window_s"]), int(DEFAULTS["track_order"]))
+    visible = []
+    for v in MIN_VISIBLE_GRID:
+        t = acc.method_track_table(inputs, *default, None, rules, v)
+        n_v = int(np.isfinite(t.loc[t["bubble"] >= 1, "vx"].to_numpy(np.float64)).sum())
+        visible.append([v, velocity_scores(t, truth)["relative_error"], n_v])
     raw = acc.method_track_table(inputs, 0.0, 1, None, PLAIN_RULES)
     em, eb = centre_errors(raw, truth), centre_errors(base, truth)
     both = em.merge(eb, on=["frame", "gt_bubble", "gt_r_eq"], suffixes=("", "_b"))
@@ -180,6 +240,8 @@ def session_limits(
         "jitter_um": {"method": 1e6 * m_jit, "baseline": 1e6 * b_jit},
     }
     out["grids"] = {name: [[w, o, e] for (w, o), e in grid.items()] for name, grid in grids.items()}
+    out["method_only"] = method_only(landed, bar_table, truth, inputs[1])
+    out["min_visible"] = visible
     return out
 
 
@@ -232,19 +294,49 @@ def fixed_sweep(draws: dict[str, dict[str, dict]]) -> pd.DataFrame:
     )
 
 
+def visible_sweep(draws: dict[str, dict[str, dict]]) -> pd.DataFrame:
+    """Each ``track_min_visible`` of :data:`MIN_VISIBLE_GRID` over all sessions:
+    ``min_visible``, ``wins`` (sessions whose error is at most their ``bar``),
+    ``sessions``, ``mean``, ``worst``, ``velocities`` (bubble-frames given one)."""
+    acc_rows: dict[float, list] = {}
+    for sessions in draws.values():
+        for r in sessions.values():
+            for v, e, n in r.get("min_visible", []):
+                acc_rows.setdefault(v, []).append((e, r["bar"], n))
+    rows = []
+    for v, trip in sorted(acc_rows.items()):
+        e = np.array([t[0] for t in trip], np.float64)
+        b = np.array([t[1] for t in trip], np.float64)
+        rows.append(
+            [v, int((e <= b).sum()), len(e), float(np.nanmean(e)), float(np.nanmax(e)),
+             int(sum(t[2] for t in trip))]
+        )  # fmt: skip
+    return pd.DataFrame(
+        rows, columns=["min_visible", "wins", "sessions", "mean", "worst", "velocities"]
+    )
+
+
 def _setting(k) -> str:
     return "" if k is None else f"{1e3 * k[0]:g} ms, {k[1]}"
 
 
-def format_limits(draws: dict[str, dict[str, dict]], sweep: pd.DataFrame, top: int = 3) -> str:
-    """Markdown: one row per session the method loses, the counts, and the sweep's best
-    fixed settings of each family."""
+def format_limits(
+    draws: dict[str, dict[str, dict]],
+    sweep: pd.DataFrame,
+    top: int = 3,
+    visible: pd.DataFrame | None = None,
+) -> str:
+    """Markdown: one row per session the method loses, the counts, the sweep's best
+    fixed settings of each family and, given, the ``track_min_visible`` sweep."""
     cols = [
         "draw", "session", "fps", "bar: baseline smoothed", "method",
         "both report: method / bar (n)", "method, best of grid (setting)",
         "plain SG, best of grid (setting)", "baseline, best of grid (setting)",
         "bubble-frames: method / baseline", "centre rms µm: method / baseline",
-        "centre jitter µm: method / baseline", "limit",
+        "centre jitter µm: method / baseline",
+        "method only: bubble-frames (in part outside or hidden; visible), mean err m/s "
+        "(both report)",
+        "limit",
     ]  # fmt: skip
     lines = ["| " + " | ".join(cols) + " |", "| " + " | ".join(["---"] * len(cols)) + " |"]
     counts = dict.fromkeys(("sessions", "wins", "frames", "smoothing", "centres"), 0)
@@ -265,6 +357,7 @@ def format_limits(draws: dict[str, dict[str, dict]], sweep: pd.DataFrame, top: i
                 f"{r['matched']['method']} / {r['matched']['bar']}",
                 f"{c['rms_um']['method']:.1f} / {c['rms_um']['baseline']:.1f}",
                 f"{c['jitter_um']['method']:.1f} / {c['jitter_um']['baseline']:.1f}",
+                _only(r.get("method_only")),
                 r["limit"],
             ]  # fmt: skip
             lines.append("| " + " | ".join(cells) + " |")
@@ -284,7 +377,27 @@ def format_limits(draws: dict[str, dict[str, dict]], sweep: pd.DataFrame, top: i
                 f"| {family} | {1e3 * r['window_s']:g} | {r['order']} | "
                 f"{r['wins']} / {r['sessions']} | {r['mean']:.4f} | {r['worst']:.4f} |"
             )
+    if visible is not None and len(visible):
+        lines += [
+            "",
+            "| fit: track_min_visible (all sessions) | wins | mean | worst "
+            "| bubble-frames with a velocity |",
+            "| --- | --- | --- | --- | --- |",
+        ]
+        for _, r in visible.iterrows():
+            lines.append(
+                f"| {r['min_visible']:g} | {r['wins']} / {r['sessions']} | {r['mean']:.4f} | "
+                f"{r['worst']:.4f} | {r['velocities']} |"
+            )
     return "\n".join(lines)
+
+
+def _only(m: dict | None) -> str:
+    if not m or not m["n"]:
+        return "0"
+    vis = f"{m['visible_min']:.2f}–{m['visible_max']:.2f}" if np.isfinite(m["visible_min"]) else "–"
+    part = "–" if not np.isfinite(m["partial"]) else f"{m['partial']:.0f}"
+    return f"{m['n']} ({part}; {vis}), {m['mean_abs_mps']:.4f} ({m['both_mean_abs_mps']:.4f})"
 
 
 def run_velocity_limits(works: Sequence[Path], log=print) -> dict:
@@ -295,5 +408,6 @@ def run_velocity_limits(works: Sequence[Path], log=print) -> dict:
         w = Path(w)
         draws[w.name] = draw_limits(w, log)
         (w / "velocity_limits.json").write_text(json.dumps(acc._finite(draws[w.name]), indent=1))
-    sweep = fixed_sweep(draws)
-    return {"draws": draws, "sweep": sweep, "table": format_limits(draws, sweep)}
+    sweep, visible = fixed_sweep(draws), visible_sweep(draws)
+    table = format_limits(draws, sweep, visible=visible)
+    return {"draws": draws, "sweep": sweep, "visible_sweep": visible, "table": table}
