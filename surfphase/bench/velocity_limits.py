@@ -384,20 +384,22 @@ def format_limits(
             "| bubble-frames with a velocity |",
             "| --- | --- | --- | --- | --- |",
         ]
-        for _, r in visible.iterrows():
+        for r in visible.to_dict("records"):
             lines.append(
-                f"| {r['min_visible']:g} | {r['wins']} / {r['sessions']} | {r['mean']:.4f} | "
-                f"{r['worst']:.4f} | {r['velocities']} |"
+                f"| {r['min_visible']:g} | {int(r['wins'])} / {int(r['sessions'])} | "
+                f"{r['mean']:.4f} | {r['worst']:.4f} | {int(r['velocities'])} |"
             )
     return "\n".join(lines)
 
 
 def _only(m: dict | None) -> str:
+    """A :func:`method_only` cell (its NaNs may come back from JSON as None)."""
     if not m or not m["n"]:
         return "0"
-    vis = f"{m['visible_min']:.2f}–{m['visible_max']:.2f}" if np.isfinite(m["visible_min"]) else "–"
-    part = "–" if not np.isfinite(m["partial"]) else f"{m['partial']:.0f}"
-    return f"{m['n']} ({part}; {vis}), {m['mean_abs_mps']:.4f} ({m['both_mean_abs_mps']:.4f})"
+    f = {k: math.nan if m[k] is None else float(m[k]) for k in m}
+    vis = f"{f['visible_min']:.2f}–{f['visible_max']:.2f}" if np.isfinite(f["visible_min"]) else "–"
+    part = f"{f['partial']:.0f}" if np.isfinite(f["partial"]) else "–"
+    return f"{m['n']} ({part}; {vis}), {f['mean_abs_mps']:.4f} ({f['both_mean_abs_mps']:.4f})"
 
 
 def run_velocity_limits(works: Sequence[Path], log=print) -> dict:
