@@ -102,16 +102,24 @@ def platform_record() -> dict[str, object]:
     }
 
 
+def check_setting(setting: str | None) -> str:
+    """The ``device`` value, lower-cased (``None`` → ``auto``), if it is ``auto``,
+    ``cpu`` or ``cuda[:N]``; else ValueError. Imports no torch (a stage that computes
+    on the CPU whatever the setting still refuses a misspelt one)."""
+    s = (setting or "auto").lower()
+    if s in ("auto", "cpu") or s.startswith("cuda"):
+        return s
+    raise ValueError(f"device must be auto, cpu or cuda, not {setting!r}")
+
+
 def _resolve(setting: str | torch.device | None) -> torch.device:
     import torch
 
     if isinstance(setting, torch.device):
         return setting
-    s = (setting or "auto").lower()
+    s = check_setting(setting)
     if s == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if s.startswith("cuda") and not torch.cuda.is_available():
         raise RuntimeError("device: cuda was asked for, but no CUDA device is available")
-    if s == "cpu" or s.startswith("cuda"):
-        return torch.device(s)
-    raise ValueError(f"device must be auto, cpu or cuda, not {setting!r}")
+    return torch.device(s)

@@ -334,5 +334,8 @@ def test_hull_surface_needs_the_masks(tmp_path):
     fit, ingest = _write_fit(tmp_path)
     with pytest.raises(ValueError, match="no masks folder"):
         run_mesh(fit, ingest, tmp_path / "out", device="cpu")
+    # The hull needs no device, but a misspelt one is still refused.
+    with pytest.raises(ValueError, match="device must be auto, cpu or cuda"):
+        run_mesh(fit, ingest, tmp_path / "out", device="gpu")
     with pytest.raises(ValueError, match="surface must be"):
         run_mesh(fit, ingest, tmp_path / "out", {"surface": "tsdf"}, device="cpu")

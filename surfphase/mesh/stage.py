@@ -146,6 +146,9 @@ def _open_session(
 
         dev = str(resolve_device(device))
     else:  # the hulls are numpy on the CPU: no torch to import (2-4 s a job)
+        from surfphase.device import check_setting
+
+        check_setting(device)
         dev = "cpu"
     surfels_path = fit_dir / SURFELS
     surfels = read_fit_surfels(fit_dir)
