@@ -280,6 +280,15 @@ def velocity_scores(pred: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = 
     }
 
 
+def known_velocity_matches(
+    pred: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = GATE_R_EQ
+) -> pd.DataFrame:
+    """The reported bubbles (ids ≥ 1) matched to the truth within ``gate_r_eq``
+    (:func:`surfphase.eval.velocity.match_bubbles_relative`) whose velocity is known."""
+    m = velocity.match_bubbles_relative(pred[pred["bubble"] >= 1], truth, gate_r_eq)
+    return m[np.isfinite(m["abs_error_mps"].to_numpy(np.float64))]
+
+
 def paired_velocity_scores(
     pred: pd.DataFrame, other: pd.DataFrame, truth: pd.DataFrame, gate_r_eq: float = GATE_R_EQ
 ) -> dict:
@@ -289,10 +298,7 @@ def paired_velocity_scores(
     |error| (m/s) over those n bubble-frames divided by their mean true speed — one
     denominator for both, so the two differ only by their errors on the same bubbles."""
     keys = ["frame", "gt_bubble"]
-    both = []
-    for table in (pred, other):
-        m = velocity.match_bubbles_relative(table[table["bubble"] >= 1], truth, gate_r_eq)
-        both.append(m[np.isfinite(m["abs_error_mps"].to_numpy(np.float64))])
+    both = [known_velocity_matches(t, truth, gate_r_eq) for t in (pred, other)]
     j = both[0].merge(both[1][[*keys, "abs_error_mps"]], on=keys, suffixes=("", "_other"))
     if j.empty:
         return {"matched": 0, "method": math.nan, "baseline": math.nan}

@@ -60,6 +60,7 @@ from surfphase.bench import accuracy as acc
 from surfphase.bench.accuracy_metrics import (
     GATE_R_EQ,
     XYZ,
+    known_velocity_matches,
     paired_velocity_scores,
     velocity_scores,
 )
@@ -138,11 +139,7 @@ def method_only(
     ``visible_min``/``visible_max`` over them; ``mean_abs_mps`` their mean |velocity
     error| and ``both_mean_abs_mps`` that over the bubble-frames both match (m/s)."""
     keys = ["frame", "gt_bubble"]
-    found = []
-    for table in (pred, bar):
-        m = velocity.match_bubbles_relative(table[table["bubble"] >= 1], truth)
-        found.append(m[np.isfinite(m["abs_error_mps"].to_numpy(np.float64))])
-    mine, theirs = found
+    mine, theirs = (known_velocity_matches(t, truth) for t in (pred, bar))
     both = mine.merge(theirs[keys], on=keys, how="left", indicator=True)["_merge"] == "both"
     only = mine[~both.to_numpy()]
     out = {
